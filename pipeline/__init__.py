@@ -1,0 +1,1 @@
+"""Pure core: numpy arrays and frozen configs in, results out. No Zenoh, no files, no printing."""

@@ -1,0 +1,59 @@
+"""Pinhole depth camera: intrinsics, pose, and the optical frame convention.
+
+The camera frame is the optical frame used by ROS and OpenCV: z forward along the view
+axis, x right, y down in the image.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from robonav.pipeline.config import require
+from robonav.pipeline.transforms import FloatArray, make_transform
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics in pixels for an image of `width` x `height`."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """One depth camera: id, image size, field of view, depth range, pose and rate."""
+
+    camera_id: str = "cam0"
+    width: int = 640
+    height: int = 480
+    vertical_fov_deg: float = 58.0
+    near_m: float = 0.1
+    far_m: float = 3.0
+    position_m: tuple[float, float, float] = (1.6, 0.0, 1.0)
+    """Camera origin in the world frame [m]."""
+    quat_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+    """Orientation of the optical frame in the world frame, scalar last."""
+    rate_hz: float = 5.0
+
+    def __post_init__(self) -> None:
+        require(self.width > 0 and self.height > 0, f"camera width/height must be > 0, got {self.width}x{self.height}")
+        require(0 < self.vertical_fov_deg < 180, f"camera vertical_fov_deg must be in (0, 180), got {self.vertical_fov_deg}")
+        require(0 < self.near_m < self.far_m, f"camera needs 0 < near_m < far_m, got {self.near_m}, {self.far_m}")
+        require(self.rate_hz > 0, f"camera rate_hz must be > 0, got {self.rate_hz}")
+
+    @property
+    def world_from_camera(self) -> FloatArray:
+        """4x4 pose of the optical frame in the world frame."""
+        return make_transform(self.position_m, self.quat_xyzw)
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        """Square-pixel pinhole intrinsics from the vertical field of view."""
+        fy = 0.5 * self.height / math.tan(math.radians(self.vertical_fov_deg) / 2.0)
+        return CameraIntrinsics(self.width, self.height, fy, fy, (self.width - 1) / 2.0, (self.height - 1) / 2.0)

@@ -1,0 +1,36 @@
+"""Planner settings."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from robonav.pipeline.config import require
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    planner_id: Literal["rrtconnect"] = "rrtconnect"
+    """Default OMPL planner when a request names none."""
+    allowed_planning_time_s: float = 2.0
+    """Default planning budget per request [s]."""
+    range_rad: float = 0.0
+    """RRTConnect extension length in joint space [rad]; 0 lets OMPL choose."""
+    edge_resolution_rad: float = 0.02
+    """Largest joint-space step between collision checks along an edge [rad]."""
+    simplify: bool = True
+    """Shortcut the raw path (every result is re-validated)."""
+    shortcut_iterations: int = 100
+    seed: int = 0
+    """Seeds OMPL's sampler once per planner process and the shortcutting per request."""
+    occupancy_max_age_s: float = 10.0
+    """A plan request fails with OCCUPANCY_STALE when the newest map is older than this [s]."""
+    require_occupancy: bool = True
+    """Refuse to plan (OCCUPANCY_MISSING) until a first occupancy map arrived."""
+
+    def __post_init__(self) -> None:
+        require(self.allowed_planning_time_s > 0, f"planner.allowed_planning_time_s must be > 0, got {self.allowed_planning_time_s}")
+        require(self.range_rad >= 0, f"planner.range_rad must be >= 0, got {self.range_rad}")
+        require(self.edge_resolution_rad > 0, f"planner.edge_resolution_rad must be > 0, got {self.edge_resolution_rad}")
+        require(self.shortcut_iterations >= 0, f"planner.shortcut_iterations must be >= 0, got {self.shortcut_iterations}")
+        require(self.occupancy_max_age_s > 0, f"planner.occupancy_max_age_s must be > 0, got {self.occupancy_max_age_s}")

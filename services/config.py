@@ -1,0 +1,106 @@
+"""The whole product's config: one YAML file loaded strictly into frozen dataclasses."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Literal
+
+import yaml
+
+from robonav.pipeline.camera import CameraConfig
+from robonav.pipeline.config import ConfigError, from_mapping, require
+from robonav.pipeline.perception.config import PerceptionConfig
+from robonav.pipeline.planning.config import PlannerConfig
+from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.sim.config import SimConfig
+
+DEFAULT_CONFIG_NAME = "default.yaml"
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    mode: Literal["peer", "client", "router"] = "client"
+    connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    """Endpoints to connect to; `robonav up` runs a router listening on the first one."""
+    listen: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    """Off by default: a robot cell should not discover peers it was not told about."""
+
+
+@dataclass(frozen=True)
+class ExecutorConfig:
+    rate_hz: float = 1000.0
+    """Setpoint stream rate [Hz]."""
+    status_rate_hz: float = 20.0
+    velocity_scaling: float = 0.5
+    """Default max_velocity_scaling_factor when a request gives none."""
+    acceleration_scaling: float = 0.5
+    """Default max_acceleration_scaling_factor when a request gives none."""
+    start_tolerance_rad: float = 0.05
+    """An execute path must start within this of the measured joint state [rad]."""
+
+    def __post_init__(self) -> None:
+        require(0 < self.rate_hz <= 2000, f"executor.rate_hz must be in (0, 2000], got {self.rate_hz}")
+        require(self.status_rate_hz > 0, f"executor.status_rate_hz must be > 0, got {self.status_rate_hz}")
+        for key in ("velocity_scaling", "acceleration_scaling"):
+            value = getattr(self, key)
+            require(0 < value <= 1, f"executor.{key} must be in (0, 1], got {value}")
+        require(self.start_tolerance_rad > 0, f"executor.start_tolerance_rad must be > 0, got {self.start_tolerance_rad}")
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    goals_rad: tuple[tuple[float, ...], ...] = ()
+    """Joint goals visited in order by `robonav demo`."""
+    goal_tolerance_rad: float = 0.02
+    """A goal counts as reached when every joint is within this of it [rad]."""
+    first_map_timeout_s: float = 60.0
+    goal_timeout_s: float = 40.0
+
+    def __post_init__(self) -> None:
+        require(self.goal_tolerance_rad > 0, f"demo.goal_tolerance_rad must be > 0, got {self.goal_tolerance_rad}")
+
+
+@dataclass(frozen=True)
+class RobonavConfig:
+    cell: str = "arm0"
+    """Names one arm and its cameras; every key expression lives under robonav/<cell>/."""
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+    perception: PerceptionConfig = field(default_factory=PerceptionConfig)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    executor: ExecutorConfig = field(default_factory=ExecutorConfig)
+    demo: DemoConfig = field(default_factory=DemoConfig)
+
+    def __post_init__(self) -> None:
+        require(bool(self.cell) and "/" not in self.cell and "*" not in self.cell,
+                f"cell must be a non-empty name without '/' or '*', got {self.cell!r}")
+        n = len(self.robot.joint_names)
+        for i, goal in enumerate(self.demo.goals_rad):
+            require(len(goal) == n, f"demo.goals_rad[{i}] has {len(goal)} values, expected {n}")
+
+
+def default_config_path() -> Path:
+    return Path(str(resources.files("robonav.configs") / DEFAULT_CONFIG_NAME))
+
+
+def load_config(path: str | Path | None = None) -> RobonavConfig:
+    """Read a YAML config file strictly; `None` reads the packaged default.
+
+    Raises:
+        ConfigError: unreadable file, bad YAML, unknown key or wrong type (names file and key).
+    """
+    file = Path(path) if path is not None else default_config_path()
+    try:
+        text = file.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(str(file), "<file>", f"cannot read: {exc.strerror or exc}") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(str(file), "<file>", f"invalid YAML: {exc}") from exc
+    return from_mapping(RobonavConfig, data, source=str(file))
