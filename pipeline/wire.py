@@ -1,0 +1,237 @@
+"""Wire codec: msgpack maps with a schema version, arrays as `{dtype, shape, data}`, errors.
+
+Every payload is a msgpack map with snake_case string keys, a schema version `v`, and a
+`stamp` (float Unix seconds) where it describes a moment. Arrays travel as maps
+`{dtype: "<f4", shape: [N, 3], data: <bytes>}`, little-endian and C order, so any language
+decodes them without this package. The messages themselves are in `messages.py`;
+`docs/protocol.md` is the human-readable spec of both.
+
+Decoding is strict: unknown keys, missing keys, wrong types, wrong shapes and non-finite
+numbers (where a field forbids them) raise `ProtocolError` carrying an `ErrorCode`, which
+services turn into a structured error reply.
+"""
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any, TypeVar, get_type_hints
+
+import msgpack
+import numpy as np
+import numpy.typing as npt
+
+SCHEMA_VERSION = 1
+
+FloatArray = npt.NDArray[np.float64]
+M = TypeVar("M", bound="Message")
+
+
+class ErrorCode(str, enum.Enum):
+    """The closed list of error codes a query can answer with."""
+
+    MALFORMED_MESSAGE = "MALFORMED_MESSAGE"
+    """Not msgpack, not a map, a missing/unknown key or a value of the wrong type."""
+    UNSUPPORTED_VERSION = "UNSUPPORTED_VERSION"
+    INVALID_REQUEST = "INVALID_REQUEST"
+    """Well-formed but meaningless: NaN, wrong joint count or names, bad scaling factors."""
+    OUT_OF_JOINT_LIMITS = "OUT_OF_JOINT_LIMITS"
+    START_IN_COLLISION = "START_IN_COLLISION"
+    GOAL_IN_COLLISION = "GOAL_IN_COLLISION"
+    NO_SOLUTION = "NO_SOLUTION"
+    """The planner found no path within the allowed planning time."""
+    UNKNOWN_PLANNER = "UNKNOWN_PLANNER"
+    NO_JOINT_STATE = "NO_JOINT_STATE"
+    """No start given and no joint state received yet."""
+    OCCUPANCY_MISSING = "OCCUPANCY_MISSING"
+    OCCUPANCY_STALE = "OCCUPANCY_STALE"
+    EXECUTOR_BUSY = "EXECUTOR_BUSY"
+    """An execute request arrived while a trajectory is streaming or stopping."""
+    INTERNAL_ERROR = "INTERNAL_ERROR"
+
+
+class ProtocolError(ValueError):
+    """A message could not be decoded or a request is not acceptable."""
+
+    def __init__(self, code: ErrorCode, message: str, details: dict[str, Any] | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.details = details or {}
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Expected dtype family and shape of an array field; `None` in `shape` is any length."""
+
+    dtype: str
+    shape: tuple[int | str | None, ...]
+    finite: bool = True
+
+
+def array_field(dtype: str, shape: tuple[int | str | None, ...], *, finite: bool = True, optional: bool = False) -> Any:
+    """Declare a dataclass field that travels as an array map."""
+    spec = ArraySpec(dtype, shape, finite)
+    if optional:
+        return field(default=None, metadata={"array": spec})
+    return field(metadata={"array": spec})
+
+
+class Message:
+    """Base of wire messages: frozen dataclasses with `to_wire`/`from_wire`."""
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"v": SCHEMA_VERSION}
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            value = getattr(self, f.name)
+            if value is None:
+                continue
+            if "array" in f.metadata:
+                out[f.name] = encode_array(np.asarray(value), f.metadata["array"].dtype)
+            elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+                out[f.name] = dataclasses.asdict(value)
+            elif isinstance(value, tuple):
+                out[f.name] = list(value)
+            else:
+                out[f.name] = value
+        return out
+
+    def to_wire(self) -> bytes:
+        return msgpack.packb(self.to_dict(), use_bin_type=True)
+
+    @classmethod
+    def from_dict(cls: type[M], obj: Any) -> M:
+        if not isinstance(obj, dict):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{cls.__name__}: expected a map, got {type(obj).__name__}")
+        obj = dict(obj)
+        version = obj.pop("v", None)
+        if version is None:
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{cls.__name__}: missing schema version 'v'", {"key": "v"})
+        if version != SCHEMA_VERSION:
+            raise ProtocolError(ErrorCode.UNSUPPORTED_VERSION,
+                                f"{cls.__name__}: schema version {version!r} is not supported (this side speaks {SCHEMA_VERSION})",
+                                {"supported": [SCHEMA_VERSION], "got": version})
+        hints = get_type_hints(cls)
+        fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+        unknown = sorted(str(k) for k in obj if k not in fields)
+        if unknown:
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE,
+                                f"{cls.__name__}: unknown key '{unknown[0]}' (known: {', '.join(sorted(fields))})",
+                                {"key": unknown[0]})
+        kwargs: dict[str, Any] = {}
+        for name, f in fields.items():
+            has_default = f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
+            if name not in obj or obj[name] is None:
+                if not has_default:
+                    raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{cls.__name__}: missing key '{name}'", {"key": name})
+                continue
+            if "array" in f.metadata:
+                kwargs[name] = decode_array(obj[name], f.metadata["array"], key=name)
+            else:
+                kwargs[name] = _decode_value(hints[name], obj[name], key=name, owner=cls.__name__)
+        try:
+            return cls(**kwargs)
+        except ProtocolError:
+            raise
+        except (ValueError, TypeError) as exc:
+            raise ProtocolError(ErrorCode.INVALID_REQUEST, f"{cls.__name__}: {exc}") from exc
+
+    @classmethod
+    def from_wire(cls: type[M], payload: bytes) -> M:
+        return cls.from_dict(unpack(payload))
+
+
+def unpack(payload: bytes) -> Any:
+    """msgpack bytes → Python objects; garbage raises MALFORMED_MESSAGE."""
+    try:
+        return msgpack.unpackb(payload, raw=False, strict_map_key=True)
+    except Exception as exc:  # msgpack raises several unrelated types for garbage
+        raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"payload is not valid msgpack: {exc}") from exc
+
+
+def encode_array(array: np.ndarray, dtype: str) -> dict[str, Any]:
+    a = np.ascontiguousarray(array, dtype=np.dtype(dtype))
+    return {"dtype": dtype, "shape": list(a.shape), "data": a.tobytes()}
+
+
+_FLOAT_DTYPES = {"<f4", "<f8"}
+_INT_DTYPES = {"<i4", "<i8", "<u1", "<i1", "<u4"}
+
+
+def decode_array(obj: Any, spec: ArraySpec, *, key: str) -> np.ndarray:
+    """Decode and validate an array map against `spec`; converts float32/64 to `spec.dtype`."""
+    if not isinstance(obj, dict) or set(obj) != {"dtype", "shape", "data"}:
+        raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"'{key}' must be an array map {{dtype, shape, data}}", {"key": key})
+    dtype, shape, data = obj["dtype"], obj["shape"], obj["data"]
+    family = _FLOAT_DTYPES if spec.dtype in _FLOAT_DTYPES else _INT_DTYPES
+    if dtype not in family:
+        raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"'{key}': dtype {dtype!r} not accepted (use one of {sorted(family)})",
+                            {"key": key, "dtype": dtype})
+    if not isinstance(shape, list) or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape):
+        raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"'{key}': shape must be a list of non-negative ints", {"key": key})
+    if not isinstance(data, bytes):
+        raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"'{key}': data must be bytes", {"key": key})
+    if len(shape) != len(spec.shape) or any(e is not None and not isinstance(e, str) and e != s for e, s in zip(spec.shape, shape)):
+        want = ["N" if e is None else e for e in spec.shape]
+        raise ProtocolError(ErrorCode.INVALID_REQUEST, f"'{key}': shape {shape} does not match expected {want}",
+                            {"key": key, "shape": shape, "expected": want})
+    np_dtype = np.dtype(dtype)
+    expected_bytes = int(np.prod(shape, dtype=np.int64)) * np_dtype.itemsize
+    if len(data) != expected_bytes:
+        raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"'{key}': {len(data)} data bytes, shape {shape} of {dtype} needs {expected_bytes}",
+                            {"key": key})
+    array = np.frombuffer(data, dtype=np_dtype).reshape(shape).astype(np.dtype(spec.dtype), copy=True)
+    if spec.finite and array.dtype.kind == "f" and not np.all(np.isfinite(array)):
+        bad = np.argwhere(~np.isfinite(array))[0].tolist()
+        raise ProtocolError(ErrorCode.INVALID_REQUEST, f"'{key}' contains a non-finite value at index {bad}", {"key": key, "index": bad})
+    return array
+
+
+def _decode_value(tp: Any, value: Any, *, key: str, owner: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        inner = [a for a in args if a is not type(None)]
+        return _decode_value(inner[0], value, key=key, owner=owner)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a map", {"key": key})
+        names = {f.name for f in dataclasses.fields(tp)}
+        if set(value) - names or names - set(value):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must have exactly the keys {sorted(names)}", {"key": key})
+        sub_hints = get_type_hints(tp)
+        return tp(**{k: _decode_value(sub_hints[k], v, key=f"{key}.{k}", owner=owner) for k, v in value.items()})
+    if origin is tuple:
+        if not isinstance(value, list):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a list", {"key": key})
+        return tuple(_decode_value(args[0], v, key=f"{key}[{i}]", owner=owner) for i, v in enumerate(value))
+    if origin is dict or tp is dict:
+        if not isinstance(value, dict):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a map", {"key": key})
+        return dict(value)
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a number, got {type(value).__name__}", {"key": key})
+        if not math.isfinite(value):
+            raise ProtocolError(ErrorCode.INVALID_REQUEST, f"{owner}: '{key}' must be finite, got {value}", {"key": key})
+        return float(value)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a bool, got {type(value).__name__}", {"key": key})
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be an integer, got {type(value).__name__}", {"key": key})
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a string, got {type(value).__name__}", {"key": key})
+        return value
+    if tp is bytes:
+        if not isinstance(value, bytes):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be bytes (msgpack bin), got {type(value).__name__}", {"key": key})
+        return value
+    raise TypeError(f"unsupported message field type {tp!r}")

@@ -1,0 +1,125 @@
+"""Codec round trips for every message, and structured errors for malformed payloads."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import msgpack
+import numpy as np
+import pytest
+
+from robonav.pipeline.camera import CameraIntrinsics
+from robonav.pipeline.messages import (ALL_MESSAGES, ContactsRequest, ContactsResponse, ErrorReply, ExecuteRequest,
+                                       ExecuteResponse, ExecutorStatus, JointState, Occupancy, PlanRequest,
+                                       PlanResponse, PointCloud, Setpoint, StopRequest, StopResponse, decode_reply)
+from robonav.pipeline.wire import SCHEMA_VERSION, ErrorCode, Message, ProtocolError
+
+RNG = np.random.default_rng(7)
+NAMES = tuple(f"j{i}" for i in range(7))
+
+EXAMPLES: list[Message] = [
+    JointState(stamp=1.5, names=NAMES, position=RNG.normal(size=7), velocity=RNG.normal(size=7)),
+    PointCloud(stamp=2.0, camera_id="cam0", points=RNG.normal(size=(50, 3)).astype(np.float32), seq=3,
+               intrinsics=CameraIntrinsics(640, 480, 430.0, 430.0, 319.5, 239.5)),
+    Occupancy(stamp=3.0, resolution_m=0.02, octomap_binary=b"# Octomap OcTree binary file\n\x00\xff",
+              occupied_centers_m=RNG.normal(size=(10, 3)).astype(np.float32), seq=2),
+    PlanRequest(goal_positions=RNG.normal(size=7), joint_names=NAMES, start_positions=RNG.normal(size=7),
+                planner_id="rrtconnect", allowed_planning_time=1.0, seed=4, simplify=False,
+                max_velocity_scaling_factor=0.3, max_acceleration_scaling_factor=0.2, request_id="r1"),
+    PlanRequest(goal_positions=RNG.normal(size=7)),
+    PlanResponse(joint_names=NAMES, path=RNG.normal(size=(4, 7)), planning_time_s=0.01, path_length_rad=2.0,
+                 min_clearance_m=None, waypoint_count=4, request_id="r1"),
+    ExecuteRequest(path=RNG.normal(size=(3, 7)), joint_names=NAMES, max_velocity_scaling_factor=0.5, trajectory_id="t"),
+    ExecuteResponse(trajectory_id="t", duration_s=2.5, waypoint_count=3),
+    StopRequest(emergency=True),
+    StopResponse(state="stopping"),
+    Setpoint(stamp=4.0, trajectory_id="t", names=NAMES, position=RNG.normal(size=7), velocity=RNG.normal(size=7),
+             acceleration=RNG.normal(size=7)),
+    ExecutorStatus(stamp=5.0, state="executing", trajectory_id="t", progress=0.5, time_from_start_s=1.0, duration_s=2.0),
+    ContactsRequest(reset=True),
+    ContactsResponse(contact_count=2, pairs=("panda_hand|box",), min_distance_m=0.01),
+    ErrorReply(code="NO_SOLUTION", message="no path in 1.0 s", details={"time_s": 1.0}),
+]
+
+
+def _equal(a: object, b: object) -> bool:
+    if isinstance(a, np.ndarray):
+        return isinstance(b, np.ndarray) and a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b)
+    return a == b
+
+
+def test_every_message_has_an_example() -> None:
+    assert {type(m) for m in EXAMPLES} == set(ALL_MESSAGES)
+
+
+@pytest.mark.parametrize("message", EXAMPLES, ids=lambda m: type(m).__name__)
+def test_round_trip(message: Message) -> None:
+    decoded = type(message).from_wire(message.to_wire())
+    for f in dataclasses.fields(message):  # type: ignore[arg-type]
+        assert _equal(getattr(message, f.name), getattr(decoded, f.name)), f.name
+
+
+@pytest.mark.parametrize("message", EXAMPLES, ids=lambda m: type(m).__name__)
+def test_wire_form_is_plain_msgpack(message: Message) -> None:
+    """What other languages see: a map with v, snake_case keys and array maps."""
+    obj = msgpack.unpackb(message.to_wire(), raw=False)
+    assert obj["v"] == SCHEMA_VERSION
+    assert all(k == k.lower() and " " not in k for k in obj)
+    for value in obj.values():
+        if isinstance(value, dict) and "dtype" in value:
+            assert value["dtype"] in ("<f4", "<f8")
+            assert len(value["data"]) == int(np.prod(value["shape"])) * int(value["dtype"][-1])
+
+
+def test_float64_points_are_accepted_and_converted() -> None:
+    pts = RNG.normal(size=(5, 3))
+    obj = {"v": 1, "stamp": 1.0, "camera_id": "c", "points": {"dtype": "<f8", "shape": [5, 3], "data": pts.tobytes()}}
+    cloud = PointCloud.from_wire(msgpack.packb(obj, use_bin_type=True))
+    assert cloud.points.dtype == np.float32 and np.allclose(cloud.points, pts, atol=1e-6)
+
+
+def _plan_obj(**overrides: object) -> bytes:
+    obj: dict[str, object] = {"v": 1, "goal_positions": {"dtype": "<f8", "shape": [7], "data": np.zeros(7).tobytes()}}
+    obj.update(overrides)
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+@pytest.mark.parametrize(
+    ("payload", "code", "fragment"),
+    [
+        (b"\xc1garbage", ErrorCode.MALFORMED_MESSAGE, "not valid msgpack"),
+        (msgpack.packb([1, 2, 3]), ErrorCode.MALFORMED_MESSAGE, "expected a map"),
+        (msgpack.packb({"goal_positions": 1}), ErrorCode.MALFORMED_MESSAGE, "missing schema version"),
+        (_plan_obj(v=2), ErrorCode.UNSUPPORTED_VERSION, "schema version 2"),
+        (_plan_obj(planer_id="x"), ErrorCode.MALFORMED_MESSAGE, "unknown key 'planer_id'"),
+        (msgpack.packb({"v": 1}), ErrorCode.MALFORMED_MESSAGE, "missing key 'goal_positions'"),
+        (_plan_obj(goal_positions=[0.0] * 7), ErrorCode.MALFORMED_MESSAGE, "array map"),
+        (_plan_obj(goal_positions={"dtype": "<f8", "shape": [7], "data": b"\x00" * 8}), ErrorCode.MALFORMED_MESSAGE, "data bytes"),
+        (_plan_obj(goal_positions={"dtype": "<f8", "shape": [7, 1], "data": np.zeros(7).tobytes()}), ErrorCode.INVALID_REQUEST, "shape"),
+        (_plan_obj(goal_positions={"dtype": ">f8", "shape": [7], "data": np.zeros(7).tobytes()}), ErrorCode.MALFORMED_MESSAGE, "dtype"),
+        (_plan_obj(goal_positions={"dtype": "<f8", "shape": [2], "data": np.array([0.0, np.nan]).tobytes()}),
+         ErrorCode.INVALID_REQUEST, "non-finite value at index \\[1\\]"),
+        (_plan_obj(allowed_planning_time="soon"), ErrorCode.MALFORMED_MESSAGE, "must be a number"),
+        (_plan_obj(allowed_planning_time=float("inf")), ErrorCode.INVALID_REQUEST, "must be finite"),
+        (_plan_obj(allowed_planning_time=-1.0), ErrorCode.INVALID_REQUEST, "must be > 0"),
+        (_plan_obj(max_velocity_scaling_factor=1.5), ErrorCode.INVALID_REQUEST, "in \\(0, 1\\]"),
+        (_plan_obj(joint_names=["a", "b"]), ErrorCode.INVALID_REQUEST, "7 joint values but 2 joint names"),
+        (_plan_obj(seed=True), ErrorCode.MALFORMED_MESSAGE, "must be an integer"),
+    ],
+)
+def test_malformed_plan_requests_raise_structured_errors(payload: bytes, code: ErrorCode, fragment: str) -> None:
+    with pytest.raises(ProtocolError, match=fragment) as info:
+        PlanRequest.from_wire(payload)
+    assert info.value.code is code
+
+
+def test_decode_reply_tells_errors_from_results() -> None:
+    error = ErrorReply(code="START_IN_COLLISION", message="x", details={"pairs": ["a|b"]})
+    assert isinstance(decode_reply(error.to_wire(), PlanResponse), ErrorReply)
+    assert isinstance(decode_reply(EXAMPLES[5].to_wire(), PlanResponse), PlanResponse)
+
+
+def test_error_codes_are_a_closed_list() -> None:
+    with pytest.raises(ValueError):
+        ErrorReply(code="SOMETHING_ELSE", message="x")
+    assert {c.value for c in ErrorCode} >= {"START_IN_COLLISION", "GOAL_IN_COLLISION", "NO_SOLUTION", "INVALID_REQUEST"}
