@@ -1,0 +1,101 @@
+"""Random shortcutting of a joint-space path, then removal of redundant waypoints."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from robonav.pipeline.planning.metrics import as_path
+from robonav.pipeline.transforms import FloatArray
+
+_EPS = 1e-9
+
+
+def shortcut_path(
+    path: FloatArray,
+    *,
+    motion_valid: Callable[[FloatArray, FloatArray], bool],
+    rng: np.random.Generator,
+    iterations: int,
+) -> FloatArray:
+    """Shorten `path` by straight connections that pass `motion_valid`.
+
+    Each iteration draws two arc-length positions on the path (anywhere, also mid-segment) and
+    replaces the stretch between them by a straight segment when that is shorter and valid.
+    A final pass drops waypoints whose neighbours connect directly. Every segment of the output
+    is either a segment of the input or was accepted by `motion_valid` (including the cut-off
+    pieces of input segments, which are re-checked because a discretised check of a
+    sub-segment samples different states than the check of the whole).
+
+    Args:
+        path: (K, n) waypoints [rad], assumed valid segment by segment.
+        motion_valid: Validity of the straight segment between two (n,) states.
+        rng: Source of the random positions; the same seed gives the same result.
+        iterations: Number of shortcut attempts (>= 0).
+
+    Returns:
+        (K', n) path with the same first and last rows, never longer (Euclidean joint-space
+        length) than `path`.
+    """
+    arr = as_path(path).copy()
+    if iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    for _ in range(iterations):
+        if arr.shape[0] < 3:
+            break
+        arr = _try_shortcut(arr, motion_valid, rng)
+    return _drop_redundant(arr, motion_valid)
+
+
+def _try_shortcut(
+    arr: FloatArray, motion_valid: Callable[[FloatArray, FloatArray], bool], rng: np.random.Generator
+) -> FloatArray:
+    seg_len = np.linalg.norm(np.diff(arr, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg_len)])
+    total = cum[-1]
+    if total <= _EPS:
+        return arr
+    s1, s2 = np.sort(rng.uniform(0.0, total, size=2))
+    i1 = min(int(np.searchsorted(cum, s1, side="right")) - 1, len(seg_len) - 1)
+    i2 = min(int(np.searchsorted(cum, s2, side="right")) - 1, len(seg_len) - 1)
+    if i1 == i2:
+        return arr  # both on one straight segment: nothing to gain
+    p1 = _point_on_segment(arr, cum, seg_len, i1, s1)
+    p2 = _point_on_segment(arr, cum, seg_len, i2, s2)
+    if np.linalg.norm(p2 - p1) >= (s2 - s1) - _EPS:
+        return arr
+    if not motion_valid(p1, p2):
+        return arr
+    head = [arr[: i1 + 1]]
+    if np.linalg.norm(p1 - arr[i1]) > _EPS:
+        if not motion_valid(arr[i1], p1):
+            return arr
+        head.append(p1[None])
+    tail = [arr[i2 + 1:]]
+    if np.linalg.norm(arr[i2 + 1] - p2) > _EPS:
+        if not motion_valid(p2, arr[i2 + 1]):
+            return arr
+        tail.insert(0, p2[None])
+    return np.vstack(head + tail)
+
+
+def _point_on_segment(arr: FloatArray, cum: FloatArray, seg_len: FloatArray, i: int, s: float) -> FloatArray:
+    if seg_len[i] <= _EPS:
+        return arr[i].copy()
+    t = min(max((s - cum[i]) / seg_len[i], 0.0), 1.0)
+    return arr[i] + (arr[i + 1] - arr[i]) * t
+
+
+def _drop_redundant(arr: FloatArray, motion_valid: Callable[[FloatArray, FloatArray], bool]) -> FloatArray:
+    """Greedy pass: skip a waypoint when the last kept one connects straight to the next one."""
+    keep = [0]
+    for i in range(1, arr.shape[0] - 1):
+        prev = arr[keep[-1]]
+        if np.linalg.norm(arr[i] - prev) <= _EPS:
+            continue  # duplicate waypoint
+        if not motion_valid(prev, arr[i + 1]):
+            keep.append(i)
+    if arr.shape[0] > 1:
+        keep.append(arr.shape[0] - 1)
+    return arr[keep].copy()

@@ -1,0 +1,102 @@
+"""plan_rrt_connect on a 2-D point robot and on the Panda with a real CollisionWorld."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robonav.pipeline.collision import CollisionWorld
+from robonav.pipeline.planning.rrt_connect import plan_rrt_connect, seed_ompl_once
+from robonav.pipeline.planning.result import PlanStatus
+from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.scene import SceneObject
+
+WALL = (0.45, 0.0, 0.55, 0.8)  # x0, y0, x1, y1: a wall with a gap above it
+START, GOAL = np.array([0.1, 0.1]), np.array([0.9, 0.1])
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _seed() -> None:
+    seed_ompl_once(0)
+
+
+def _plan(robot, start=START, goal=GOAL, time_limit_s=2.0):
+    return plan_rrt_connect(start, goal, lower_rad=robot.lower, upper_rad=robot.upper, is_valid=robot.is_valid,
+                            motion_valid=robot.motion_valid, time_limit_s=time_limit_s)
+
+
+def test_path_around_wall(make_point_robot) -> None:
+    robot = make_point_robot([WALL])
+    result = _plan(robot)
+    assert result.status is PlanStatus.SUCCESS, result.detail
+    path = result.path
+    assert path.shape[1] == 2 and path.shape[0] >= 3  # the wall forbids the direct segment
+    np.testing.assert_array_equal(path[0], START)
+    np.testing.assert_array_equal(path[-1], GOAL)
+    assert all(robot.motion_valid(a, b) for a, b in zip(path[:-1], path[1:]))
+    assert np.all(path >= 0.0) and np.all(path <= 1.0)
+    assert np.max(path[:, 1]) > 0.8  # it went over the wall
+    assert 0 < result.planning_time_s < 2.0
+
+
+def test_direct_segment_when_free(make_point_robot) -> None:
+    result = _plan(make_point_robot([]))
+    assert result.status is PlanStatus.SUCCESS
+    np.testing.assert_array_equal(result.path, [START, GOAL])
+
+
+def test_invalid_start_goal_and_bounds(make_point_robot) -> None:
+    robot = make_point_robot([WALL])
+    assert _plan(robot, start=np.array([0.5, 0.5])).status is PlanStatus.START_INVALID
+    assert _plan(robot, goal=np.array([0.5, 0.5])).status is PlanStatus.GOAL_INVALID
+    result = _plan(robot, goal=np.array([0.9, 1.2]))
+    assert result.status is PlanStatus.OUT_OF_BOUNDS and result.path is None
+    assert "goal" in result.detail and "joint 1" in result.detail and "upper bound 1" in result.detail
+
+
+def test_enclosed_goal_times_out_within_budget(make_point_robot) -> None:
+    box = [(0.7, 0.0, 0.72, 0.3), (0.7, 0.28, 1.0, 0.3)]  # with the square's edges: the goal is enclosed
+    robot = make_point_robot(box)
+    result = _plan(robot, time_limit_s=0.3)
+    assert result.status is PlanStatus.TIMEOUT and result.path is None
+    assert 0.3 <= result.planning_time_s < 1.0
+
+
+def test_bad_input_raises(make_point_robot) -> None:
+    robot = make_point_robot([])
+    with pytest.raises(ValueError, match=r"q_goal must have shape \(2,\)"):
+        _plan(robot, goal=np.zeros(3))
+    with pytest.raises(ValueError, match=r"q_start\[1\] must be finite"):
+        _plan(robot, start=np.array([0.1, np.nan]))
+    with pytest.raises(ValueError, match="time_limit_s"):
+        _plan(robot, time_limit_s=0.0)
+    with pytest.raises(ValueError, match=r"lower_rad\[0\]"):
+        plan_rrt_connect(START, GOAL, lower_rad=np.ones(2), upper_rad=np.ones(2), is_valid=robot.is_valid,
+                         motion_valid=robot.motion_valid, time_limit_s=1.0)
+
+
+def test_seed_only_once() -> None:
+    seed_ompl_once(1)
+    assert seed_ompl_once(2) is False
+    with pytest.raises(ValueError, match="seed"):
+        seed_ompl_once(-1)
+
+
+def test_panda_around_block(panda: RobotModel) -> None:
+    world = CollisionWorld(panda, padding_m=0.01)
+    world.set_objects([SceneObject("block", "box", (0.307, 0.0, 0.44), size_m=(0.08, 0.08, 0.08))])
+    start, goal = panda.home_position_rad.copy(), panda.home_position_rad.copy()
+    start[0], goal[0] = -1.0, 1.0
+    resolution_rad = 0.02
+    assert not world.motion_valid(start, goal, resolution_rad)
+    result = plan_rrt_connect(
+        start, goal, lower_rad=panda.lower_limits_rad, upper_rad=panda.upper_limits_rad,
+        is_valid=lambda q: not world.in_collision(q),
+        motion_valid=lambda a, b: world.motion_valid(a, b, resolution_rad),
+        time_limit_s=5.0,
+    )
+    assert result.status is PlanStatus.SUCCESS, result.detail
+    np.testing.assert_array_equal(result.path[0], start)
+    np.testing.assert_array_equal(result.path[-1], goal)
+    assert world.path_valid(result.path, resolution_rad)
+    assert all(panda.check_joint_limits(q) == [] for q in result.path)

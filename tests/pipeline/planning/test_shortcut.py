@@ -1,0 +1,94 @@
+"""shortcut_path and the path metrics, on random valid point-robot paths and on a Panda path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from robonav.pipeline.collision import CollisionWorld
+from robonav.pipeline.planning.metrics import interpolate_path, max_joint_step_rad, path_length_rad
+from robonav.pipeline.planning.shortcut import shortcut_path
+from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.scene import SceneObject
+
+WALLS = [(0.3, 0.0, 0.35, 0.7), (0.65, 0.3, 0.7, 1.0)]  # an S-shaped corridor
+
+
+def _random_valid_path(robot, rng: np.random.Generator, waypoints: int) -> np.ndarray:
+    """A random walk whose every segment passes the robot's exact segment check."""
+    path = [np.array([0.1, 0.1])]
+    while len(path) < waypoints:
+        candidate = np.clip(path[-1] + rng.normal(0.0, 0.2, size=2), 0.0, 1.0)
+        if robot.motion_valid(path[-1], candidate):
+            path.append(candidate)
+    return np.array(path)
+
+
+# make_point_robot is a stateless factory, so reusing it across examples is safe.
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(path_seed=st.integers(0, 2**32 - 1), shortcut_seed=st.integers(0, 2**32 - 1),
+       waypoints=st.integers(2, 30), iterations=st.integers(0, 60))
+def test_shortcut_properties(make_point_robot, path_seed, shortcut_seed, waypoints, iterations) -> None:
+    robot = make_point_robot(WALLS)
+    path = _random_valid_path(robot, np.random.default_rng(path_seed), waypoints)
+    out = shortcut_path(path, motion_valid=robot.motion_valid, rng=np.random.default_rng(shortcut_seed),
+                        iterations=iterations)
+    assert out.ndim == 2 and out.shape[1] == 2 and 2 <= out.shape[0] <= path.shape[0] + 2 * iterations
+    np.testing.assert_array_equal(out[0], path[0])
+    np.testing.assert_array_equal(out[-1], path[-1])
+    assert path_length_rad(out) <= path_length_rad(path) + 1e-12
+    assert all(robot.motion_valid(a, b) for a, b in zip(out[:-1], out[1:]))
+    again = shortcut_path(path, motion_valid=robot.motion_valid, rng=np.random.default_rng(shortcut_seed),
+                          iterations=iterations)
+    np.testing.assert_array_equal(out, again)
+
+
+def test_shortcut_straightens_free_detour(make_point_robot) -> None:
+    robot = make_point_robot([])
+    path = np.array([[0.0, 0.0], [0.5, 0.9], [0.2, 0.1], [1.0, 1.0]])
+    out = shortcut_path(path, motion_valid=robot.motion_valid, rng=np.random.default_rng(0), iterations=10)
+    np.testing.assert_array_equal(out, [[0.0, 0.0], [1.0, 1.0]])
+
+
+def test_shortcut_keeps_needed_corner(make_point_robot) -> None:
+    robot = make_point_robot([(0.4, 0.0, 0.6, 0.6)])
+    path = np.array([[0.1, 0.1], [0.1, 0.9], [0.9, 0.9], [0.9, 0.1]])
+    out = shortcut_path(path, motion_valid=robot.motion_valid, rng=np.random.default_rng(3), iterations=200)
+    assert path_length_rad(out) < path_length_rad(path) - 0.3
+    assert 3 <= out.shape[0] and all(robot.motion_valid(a, b) for a, b in zip(out[:-1], out[1:]))
+
+
+def test_shortcut_panda_path(panda: RobotModel) -> None:
+    world = CollisionWorld(panda, padding_m=0.01)
+    world.set_objects([SceneObject("block", "box", (0.307, 0.0, 0.44), size_m=(0.08, 0.08, 0.08))])
+    start, goal = panda.home_position_rad.copy(), panda.home_position_rad.copy()
+    start[0], goal[0] = -1.0, 1.0
+    lifted = [start.copy(), start.copy(), goal.copy(), goal.copy()]
+    lifted[1][1] = lifted[2][1] = -1.4
+    path = interpolate_path(np.array(lifted), 0.3)
+    assert world.path_valid(path, 0.02)
+    out = shortcut_path(path, motion_valid=lambda a, b: world.motion_valid(a, b, 0.02),
+                        rng=np.random.default_rng(0), iterations=30)
+    assert path_length_rad(out) < path_length_rad(path)
+    assert world.path_valid(out, 0.02)
+    np.testing.assert_array_equal(out[[0, -1]], path[[0, -1]])
+
+
+def test_metrics() -> None:
+    path = np.array([[0.0, 0.0], [3.0, 4.0], [3.0, 5.0]])
+    assert path_length_rad(path) == pytest.approx(6.0)
+    assert max_joint_step_rad(path) == pytest.approx(4.0)
+    assert max_joint_step_rad(path[:1]) == 0.0
+    dense = interpolate_path(path, 0.5)
+    assert max_joint_step_rad(dense) <= 0.5 + 1e-12
+    assert path_length_rad(dense) == pytest.approx(6.0)
+    np.testing.assert_array_equal(dense[[0, -1]], path[[0, -1]])
+    for waypoint in path:
+        assert np.any(np.all(np.isclose(dense, waypoint), axis=1))
+    assert dense.shape == (1 + 8 + 2, 2)
+    with pytest.raises(ValueError, match=r"path\[1, 0\] must be finite"):
+        path_length_rad(np.array([[0.0, 0.0], [np.nan, 1.0]]))
+    with pytest.raises(ValueError, match="max_step_rad"):
+        interpolate_path(path, 0.0)
