@@ -1,0 +1,353 @@
+"""A headless pybullet world: the arm, static obstacles and a depth camera.
+
+Each `SimWorld` owns its own DIRECT physics client and passes `physicsClientId` to every
+call, so several worlds coexist in one process. The world frame is the robot base frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from types import TracebackType
+
+import numpy as np
+import numpy.typing as npt
+import pybullet as p
+import pybullet_data
+
+from robonav.pipeline.camera import CameraConfig, CameraIntrinsics
+from robonav.pipeline.perception.depth import depth_from_opengl_buffer
+from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.sim.config import SimConfig
+
+_PYBULLET_DATA_PREFIX = "pybullet_data:"
+_GRAVITY_M_S2 = 9.81
+# pybullet's POSITION_CONTROL motor asks the solver for the joint velocity
+# kp * position_error / dt + kd * (target_velocity - velocity) + velocity (roughly), capped by
+# the force. kp = 1 would be dead-beat but rings on the light wrist links; these values settle a
+# 0.3 rad step to 1e-3 rad in ~15 steps at 240 Hz without overshoot (see tests).
+_POSITION_GAIN = 0.5
+_VELOCITY_GAIN = 1.0
+# The Panda URDF efforts (87 / 12 Nm) saturate when the motor chases a step target, which turns
+# tracking into a slow ramp; the sim arm stands in for a stiff, well-tuned joint controller.
+_MOTOR_FORCE_SCALE = 10.0
+_MIN_MOTOR_FORCE = 50.0
+# Setpoints arrive slower than physics steps (100 vs 240 Hz); between them the dynamic motors
+# chase the setpoint extrapolated along its velocity (a first-order hold) instead of being pulled
+# back to a stale position. Capped so a silent executor cannot drive the arm away indefinitely.
+_MAX_EXTRAPOLATION_S = 0.05
+_OBSTACLE_RGBA = ((0.85, 0.33, 0.10, 1.0), (0.00, 0.45, 0.74, 1.0), (0.47, 0.67, 0.19, 1.0),
+                  (0.93, 0.69, 0.13, 1.0), (0.49, 0.18, 0.56, 1.0), (0.30, 0.75, 0.93, 1.0))
+# OpenGL cameras look along -z with y up; the optical frame looks along +z with y down.
+_GL_FROM_OPTICAL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class DepthFrame:
+    """One rendered depth image with its labels and camera model."""
+
+    depth_m: npt.NDArray[np.float32]
+    """(H, W) depth along the optical axis [m]; +inf where nothing was hit."""
+    segmentation: npt.NDArray[np.int32]
+    """(H, W) pybullet body unique id per pixel; -1 for background (see `SimWorld.body_labels`)."""
+    intrinsics: CameraIntrinsics
+    world_from_camera: npt.NDArray[np.float64]
+    """(4, 4) pose of the optical frame in the world frame."""
+
+
+@dataclass(frozen=True)
+class Contact:
+    """The deepest contact between one robot link and one obstacle."""
+
+    link: str
+    object: str
+    distance_m: float
+    """Signed distance [m]; <= 0 (negative is penetration)."""
+
+
+class SimWorld:
+    """The simulated arm among static obstacles, stepped explicitly by its owner.
+
+    The world never sleeps: pacing steps to wall time is the caller's job. How joints follow
+    `set_joint_target` depends on `SimConfig.follow` (see `SimConfig`). Self-collision is off.
+
+    Args:
+        robot: Robot description; its URDF is loaded with a fixed base at the world origin.
+        camera: Depth camera rendered by `render_depth`.
+        sim: Physics rate, following mode and obstacles.
+
+    Raises:
+        ValueError: the URDF cannot be loaded, or a configured joint or link is missing.
+    """
+
+    def __init__(self, robot: RobotConfig, camera: CameraConfig, sim: SimConfig) -> None:
+        self._robot_config = robot
+        self._camera = camera
+        self._sim = sim
+        self._dt_s = 1.0 / sim.physics_rate_hz
+        self._steps = 0
+        self._client: int = p.connect(p.DIRECT)
+        try:
+            self._build()
+        except BaseException:
+            self.close()
+            raise
+
+    def _build(self) -> None:
+        cid = self._client
+        p.setTimeStep(self._dt_s, physicsClientId=cid)
+        p.setGravity(0.0, 0.0, -_GRAVITY_M_S2 if self._sim.gravity else 0.0, physicsClientId=cid)
+        self._load_robot()
+        self._obstacles: dict[int, str] = {
+            _create_obstacle(obj, _OBSTACLE_RGBA[i % len(_OBSTACLE_RGBA)], cid): obj.name
+            for i, obj in enumerate(self._sim.objects)
+        }
+        p.performCollisionDetection(physicsClientId=cid)
+
+    def _load_robot(self) -> None:
+        cid, config = self._client, self._robot_config
+        urdf_path = config.urdf
+        if urdf_path.startswith(_PYBULLET_DATA_PREFIX):
+            urdf_path = pybullet_data.getDataPath() + "/" + urdf_path[len(_PYBULLET_DATA_PREFIX):].lstrip("/")
+        try:
+            # No URDF_USE_SELF_COLLISION flag: the arm never collides with itself here; self-collision
+            # is the planner's business and would only add solver noise at the wrist.
+            self._robot = p.loadURDF(urdf_path, useFixedBase=True, physicsClientId=cid)
+        except p.error as exc:
+            raise ValueError(f"robot.urdf '{config.urdf}' could not be loaded from {urdf_path}") from exc
+
+        base_name = p.getBodyInfo(self._robot, physicsClientId=cid)[0].decode()
+        if config.base_link != base_name:
+            raise ValueError(f"robot.base_link '{config.base_link}' is not the root link '{base_name}' of "
+                             f"{config.urdf}; the sim puts the root link at the world origin")
+        self._link_names: dict[int, str] = {-1: base_name}
+        all_joints: list[str] = []
+        movable: dict[str, tuple[int, float, float, float]] = {}  # name -> (index, lower, upper, effort)
+        for j in range(p.getNumJoints(self._robot, physicsClientId=cid)):
+            info = p.getJointInfo(self._robot, j, physicsClientId=cid)
+            all_joints.append(info[1].decode())
+            self._link_names[j] = info[12].decode()
+            if info[2] != p.JOINT_FIXED:
+                movable[all_joints[-1]] = (j, info[8], info[9], info[10])
+        for name in (*config.joint_names, *config.fixed_joint_positions):
+            if name not in all_joints:
+                raise ValueError(f"joint '{name}' from the robot config is not in {config.urdf} "
+                                 f"(joints: {', '.join(all_joints)})")
+            if name not in movable:
+                raise ValueError(f"joint '{name}' from the robot config is a fixed joint in {config.urdf}")
+            if name in config.joint_names and name in config.fixed_joint_positions:
+                raise ValueError(f"joint '{name}' is both a planning joint and in robot.fixed_joint_positions")
+
+        def motor_force(name: str) -> float:
+            return max(_MOTOR_FORCE_SCALE * movable[name][3], _MIN_MOTOR_FORCE)
+
+        self._joint_ids = [movable[name][0] for name in config.joint_names]
+        self._joint_forces = [motor_force(name) for name in config.joint_names]
+        self._target_q = np.asarray(config.home_position_rad, dtype=np.float64)
+        self._target_qd = np.zeros(len(self._joint_ids))
+        self._target_step = 0
+        for j, q in zip(self._joint_ids, self._target_q):
+            p.resetJointState(self._robot, j, float(q), 0.0, physicsClientId=cid)
+        # Movable joints outside the planning group (the Panda fingers) are held still, at the
+        # configured position or else at zero clamped into their limits.
+        held = [name for name in movable if name not in config.joint_names]
+        held_q = [float(config.fixed_joint_positions.get(name, np.clip(0.0, movable[name][1], movable[name][2])))
+                  for name in held]
+        for name, q in zip(held, held_q):
+            p.resetJointState(self._robot, movable[name][0], q, 0.0, physicsClientId=cid)
+        if held:
+            p.setJointMotorControlArray(self._robot, [movable[name][0] for name in held], p.POSITION_CONTROL,
+                                        targetPositions=held_q, forces=[motor_force(name) for name in held],
+                                        physicsClientId=cid)
+
+    @property
+    def sim_time_s(self) -> float:
+        """Simulated time since construction: steps taken x physics time step [s]."""
+        return self._steps * self._dt_s
+
+    @property
+    def dt_s(self) -> float:
+        """Duration of one `step()` [s]."""
+        return self._dt_s
+
+    def set_joint_target(self, q_rad: npt.ArrayLike, qd_rad_s: npt.ArrayLike | None = None) -> None:
+        """Set the setpoint the arm follows from the next `step()` on.
+
+        `(q, qd)` is the desired state now. "kinematic" worlds jump to exactly `q`, `qd` on each
+        step. "dynamic" worlds chase `q + qd * (time since this call)` with target velocity `qd`
+        until the next call, for at most 50 ms, after which they hold the extrapolated position.
+
+        Args:
+            q_rad: (n,) joint positions in `robot.joint_names` order [rad or m].
+            qd_rad_s: (n,) joint velocities [rad/s or m/s]; None means zero.
+
+        Raises:
+            ValueError: a vector has the wrong shape or is not finite.
+        """
+        n = len(self._joint_ids)
+        q = _finite_vector(q_rad, n, "joint target q_rad")
+        qd = np.zeros(n) if qd_rad_s is None else _finite_vector(qd_rad_s, n, "joint target qd_rad_s")
+        self._target_q, self._target_qd = q, qd
+        self._target_step = self._steps
+
+    def step(self) -> None:
+        """Advance the world by one physics time step of 1/physics_rate_hz."""
+        cid = self._live_client()
+        if self._sim.follow == "kinematic":
+            p.resetJointStatesMultiDof(self._robot, self._joint_ids, [[q] for q in self._target_q],
+                                       targetVelocities=[[qd] for qd in self._target_qd], physicsClientId=cid)
+            p.performCollisionDetection(physicsClientId=cid)
+        else:
+            self._apply_motor_targets()
+            p.stepSimulation(physicsClientId=cid)
+        self._steps += 1
+
+    def joint_state(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Current joint positions (n,) [rad or m] and velocities (n,) in `robot.joint_names` order."""
+        states = p.getJointStates(self._robot, self._joint_ids, physicsClientId=self._live_client())
+        return np.array([s[0] for s in states]), np.array([s[1] for s in states])
+
+    def render_depth(self) -> DepthFrame:
+        """Render the configured camera with pybullet's CPU (tiny) renderer.
+
+        Returns:
+            The depth image (linear metres along the optical axis), per-pixel body ids, the
+            intrinsics and the camera pose it was rendered with.
+        """
+        cid = self._live_client()
+        cam = self._camera
+        intrinsics = cam.intrinsics
+        world_from_camera = cam.world_from_camera
+        # pybullet takes OpenGL matrices flattened column-major.
+        view = (_GL_FROM_OPTICAL @ np.linalg.inv(world_from_camera)).flatten(order="F")
+        proj = opengl_projection_matrix(intrinsics, cam.near_m, cam.far_m).flatten(order="F")
+        _, _, _, z_buffer, seg = p.getCameraImage(
+            cam.width, cam.height, viewMatrix=view.tolist(), projectionMatrix=proj.tolist(),
+            shadow=0, renderer=p.ER_TINY_RENDERER, physicsClientId=cid)
+        z_buffer = np.asarray(z_buffer, dtype=np.float32).reshape(cam.height, cam.width)
+        segmentation = np.asarray(seg, dtype=np.int32).reshape(cam.height, cam.width)
+        depth_m = depth_from_opengl_buffer(z_buffer, cam.near_m, cam.far_m)
+        depth_m[segmentation < 0] = np.inf
+        return DepthFrame(depth_m, segmentation, intrinsics, world_from_camera)
+
+    def body_labels(self) -> dict[int, str]:
+        """Body unique id -> obstacle name, or 'robot' for the arm."""
+        return {self._robot: "robot", **self._obstacles}
+
+    def robot_obstacle_contacts(self) -> list[Contact]:
+        """Touching or penetrating robot-obstacle pairs as of the last `step()` (or construction).
+
+        Returns:
+            One `Contact` per (robot link, obstacle) pair, with its most negative distance,
+            sorted by object then link name.
+        """
+        cid = self._live_client()
+        deepest: dict[tuple[str, str], float] = {}
+        for body, name in self._obstacles.items():
+            for point in p.getContactPoints(bodyA=self._robot, bodyB=body, physicsClientId=cid):
+                distance_m = float(point[8])
+                if distance_m <= 0.0:
+                    key = (name, self._link_names[point[3]])
+                    deepest[key] = min(distance_m, deepest.get(key, math.inf))
+        return [Contact(link=link, object=obj, distance_m=d) for (obj, link), d in sorted(deepest.items())]
+
+    def min_robot_obstacle_distance_m(self, max_distance_m: float = 0.5) -> float:
+        """Smallest signed distance between any robot link and any obstacle [m].
+
+        Args:
+            max_distance_m: Query range [m]; pairs farther apart are not considered.
+
+        Returns:
+            The distance (negative when penetrating), or +inf if nothing is within range.
+
+        Raises:
+            ValueError: `max_distance_m` is negative or not finite.
+        """
+        if not (math.isfinite(max_distance_m) and max_distance_m >= 0.0):
+            raise ValueError(f"max_distance_m must be finite and >= 0, got {max_distance_m}")
+        cid = self._live_client()
+        best = math.inf
+        for body in self._obstacles:
+            for point in p.getClosestPoints(self._robot, body, max_distance_m, physicsClientId=cid):
+                best = min(best, float(point[8]))
+        return best
+
+    def close(self) -> None:
+        """Disconnect the physics client; idempotent."""
+        if self._client >= 0:
+            p.disconnect(physicsClientId=self._client)
+            self._client = -1
+
+    def __enter__(self) -> SimWorld:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def _live_client(self) -> int:
+        if self._client < 0:
+            raise RuntimeError("SimWorld is closed")
+        return self._client
+
+    def _apply_motor_targets(self) -> None:
+        # pybullet's motor compares the target with the state at the start of the step, so the
+        # target is the setpoint advanced to now.
+        elapsed_s = (self._steps - self._target_step) * self._dt_s
+        if elapsed_s <= _MAX_EXTRAPOLATION_S:
+            q, qd = self._target_q + self._target_qd * elapsed_s, self._target_qd
+        else:
+            q, qd = self._target_q + self._target_qd * _MAX_EXTRAPOLATION_S, np.zeros_like(self._target_qd)
+        n = len(self._joint_ids)
+        p.setJointMotorControlArray(
+            self._robot, self._joint_ids, p.POSITION_CONTROL,
+            targetPositions=q.tolist(), targetVelocities=qd.tolist(),
+            forces=self._joint_forces, positionGains=[_POSITION_GAIN] * n, velocityGains=[_VELOCITY_GAIN] * n,
+            physicsClientId=self._client)
+
+
+def opengl_projection_matrix(intrinsics: CameraIntrinsics, near_m: float, far_m: float) -> npt.NDArray[np.float64]:
+    """(4, 4) OpenGL projection matrix that reproduces pinhole `intrinsics`.
+
+    Pixel centres sit at integer (u, v) with v growing downwards, as in `CameraIntrinsics`;
+    for centred intrinsics this equals `computeProjectionMatrixFOV(vertical fov, w/h, near, far)`.
+    """
+    w, h = intrinsics.width, intrinsics.height
+    return np.array([
+        [2.0 * intrinsics.fx / w, 0.0, 1.0 - 2.0 * (intrinsics.cx + 0.5) / w, 0.0],
+        [0.0, 2.0 * intrinsics.fy / h, 2.0 * (intrinsics.cy + 0.5) / h - 1.0, 0.0],
+        [0.0, 0.0, -(far_m + near_m) / (far_m - near_m), -2.0 * far_m * near_m / (far_m - near_m)],
+        [0.0, 0.0, -1.0, 0.0],
+    ])
+
+
+def _create_obstacle(obj: SceneObject, rgba: tuple[float, float, float, float], cid: int) -> int:
+    """A static (mass 0) body with matching collision and visual shapes; returns its id."""
+    if obj.type == "box":
+        assert obj.size_m is not None  # validated by SceneObject
+        half = [s / 2.0 for s in obj.size_m]
+        col = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=cid)
+        vis = p.createVisualShape(p.GEOM_BOX, halfExtents=half, rgbaColor=rgba, physicsClientId=cid)
+    elif obj.type == "sphere":
+        col = p.createCollisionShape(p.GEOM_SPHERE, radius=obj.radius_m, physicsClientId=cid)
+        vis = p.createVisualShape(p.GEOM_SPHERE, radius=obj.radius_m, rgbaColor=rgba, physicsClientId=cid)
+    else:
+        # Collision shapes call the axial length `height`, visual shapes `length`. For a capsule
+        # both are the cylindrical section between the cap centres (as in FCL).
+        geom = p.GEOM_CYLINDER if obj.type == "cylinder" else p.GEOM_CAPSULE
+        col = p.createCollisionShape(geom, radius=obj.radius_m, height=obj.length_m, physicsClientId=cid)
+        vis = p.createVisualShape(geom, radius=obj.radius_m, length=obj.length_m, rgbaColor=rgba, physicsClientId=cid)
+    quat_xyzw = np.asarray(obj.quat_xyzw, dtype=np.float64)  # SceneObject allows any non-zero norm
+    return p.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=col, baseVisualShapeIndex=vis,
+                             basePosition=list(obj.position_m), baseOrientation=(quat_xyzw / np.linalg.norm(quat_xyzw)).tolist(),
+                             physicsClientId=cid)
+
+
+def _finite_vector(values: npt.ArrayLike, n: int, what: str) -> npt.NDArray[np.float64]:
+    vec = np.array(values, dtype=np.float64)
+    if vec.shape != (n,):
+        raise ValueError(f"{what} must have shape ({n},), got {vec.shape}")
+    if not np.all(np.isfinite(vec)):
+        raise ValueError(f"{what} must be finite, got {vec.tolist()}")
+    return vec
