@@ -1,0 +1,141 @@
+"""Remove the robot's own points from a cloud using padded convex hulls of its links.
+
+Each link is approximated by the convex hull of its shape's vertices (in the link frame),
+computed once with open3d, and stored as outward half-spaces `n . x <= d`. Padding moves
+every plane outward by `padding_m`. At query time the planes are applied in the link frame,
+so only the link poses change per cloud.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+import open3d as o3d
+
+from robonav.pipeline.perception.filtering import BoolArray, FloatArray, validate_points, validate_transform
+
+
+@dataclass(frozen=True)
+class _LinkHull:
+    normals_link: FloatArray
+    """(P, 3) outward unit normals of the hull's distinct face planes, link frame."""
+    offsets_m: FloatArray
+    """(P,) plane offsets including padding: a point x is inside iff normals @ x <= offsets."""
+    centre_link_m: FloatArray
+    """(3,) centre of the bounding sphere, link frame [m]."""
+    radius_m: float
+    """Bounding-sphere radius including padding [m]."""
+
+
+class SelfFilter:
+    """Padded convex-hull model of the robot's links, for dropping points on the robot.
+
+    The padded hull is the intersection of the hull's half-spaces pushed out by `padding_m`
+    and a bounding sphere of radius (farthest vertex + padding_m). That set contains the
+    exact Minkowski sum hull (+) ball(padding_m), so every point within `padding_m` of a
+    link's hull is removed; it overshoots only a little near sharp hull corners.
+    """
+
+    def __init__(self, link_hull_vertices: Mapping[str, npt.ArrayLike], padding_m: float) -> None:
+        """Precompute the padded half-spaces of every link.
+
+        Args:
+            link_hull_vertices: Link name -> (H, 3) vertices of its collision or visual shape
+                in the link frame [m], H >= 4 and not all coplanar (flat sets are joggled).
+            padding_m: Outward growth of every hull [m], >= 0.
+
+        Raises:
+            ValueError: padding is negative/non-finite, or a link's vertices are malformed or
+                too few to span a hull.
+        """
+        if not (np.isfinite(padding_m) and padding_m >= 0):
+            raise ValueError(f"padding_m must be a finite number >= 0, got {padding_m}")
+        self._padding_m = float(padding_m)
+        self._hulls: dict[str, _LinkHull] = {
+            name: _padded_hull(name, validate_points(vertices, f"link_hull_vertices[{name!r}]"), self._padding_m)
+            for name, vertices in link_hull_vertices.items()
+        }
+
+    @property
+    def link_names(self) -> tuple[str, ...]:
+        """Names of the links this filter models, in construction order."""
+        return tuple(self._hulls)
+
+    @property
+    def padding_m(self) -> float:
+        """Outward growth of every hull [m]."""
+        return self._padding_m
+
+    def outside_mask(self, points_world: npt.ArrayLike, world_from_link: Mapping[str, npt.ArrayLike]) -> BoolArray:
+        """Mask of points outside every padded link hull.
+
+        Args:
+            points_world: (N, 3) finite points in the world frame [m].
+            world_from_link: Link name -> (4, 4) pose of that link in the world frame. Links
+                this filter models but that are missing here are skipped (not filtered);
+                extra names are ignored.
+
+        Returns:
+            (N,) bool, True for points to keep (not on the robot).
+        """
+        pts = validate_points(points_world, "points_world")
+        outside = np.ones(pts.shape[0], dtype=bool)
+        for name, hull in self._hulls.items():
+            if name not in world_from_link:
+                continue
+            pose = validate_transform(world_from_link[name], f"world_from_link[{name!r}]")
+            rotation, translation = pose[:3, :3], pose[:3, 3]
+            # Cheap sphere test first: most of the scene is far from any given link.
+            centre_world = rotation @ hull.centre_link_m + translation
+            delta = pts - centre_world
+            near = np.flatnonzero(np.einsum("ij,ij->i", delta, delta) <= hull.radius_m * hull.radius_m)
+            if near.size == 0:
+                continue
+            # Row-vector form of link_from_world applied to the candidate points.
+            near_link = (pts[near] - translation) @ rotation
+            inside = (near_link @ hull.normals_link.T <= hull.offsets_m).all(axis=1)
+            outside[near[inside]] = False
+        return outside
+
+
+def _padded_hull(name: str, vertices_link: FloatArray, padding_m: float) -> _LinkHull:
+    if vertices_link.shape[0] < 4:
+        raise ValueError(
+            f"link_hull_vertices[{name!r}] needs at least 4 vertices for a 3-D hull, got {vertices_link.shape[0]}"
+        )
+    # open3d's vector wrapper needs a writeable buffer; the robot model hands out read-only arrays.
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(vertices_link, dtype=np.float64)))
+    try:
+        mesh, _ = cloud.compute_convex_hull()
+    except RuntimeError:
+        # Flat shapes (plates, planar meshes) are degenerate for qhull; joggling gives a
+        # hull of negligible thickness, which the padding then grows to a usable slab.
+        mesh, _ = cloud.compute_convex_hull(joggle_inputs=True)
+    hull_vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    triangles = np.asarray(mesh.triangles, dtype=np.int64)
+    a, b, c = (hull_vertices[triangles[:, i]] for i in range(3))
+    normals = np.cross(b - a, c - a)
+    lengths = np.linalg.norm(normals, axis=1)
+    keep = lengths > 1e-15
+    normals = normals[keep] / lengths[keep, None]
+    a = a[keep]
+    # qhull's triangle winding is not a documented contract, so orient every normal away
+    # from the vertex centroid, which lies strictly inside a 3-D hull.
+    interior = hull_vertices.mean(axis=0)
+    flip = np.einsum("ij,ij->i", normals, a - interior) < 0
+    normals[flip] *= -1.0
+    offsets = np.einsum("ij,ij->i", normals, a)
+    # Coplanar faces are split into several triangles; keep each plane once.
+    planes = np.unique(np.round(np.column_stack([normals, offsets]), 9), axis=0)
+    lo, hi = vertices_link.min(axis=0), vertices_link.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    radius = float(np.linalg.norm(vertices_link - centre, axis=1).max()) + padding_m
+    return _LinkHull(
+        normals_link=planes[:, :3].copy(),
+        offsets_m=planes[:, 3] + padding_m,
+        centre_link_m=centre,
+        radius_m=radius,
+    )

@@ -1,0 +1,168 @@
+import numpy as np
+import pytest
+
+from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.trajectory.timing import JointTrajectory, time_parameterize
+
+ROBOT = RobotConfig()
+V_MAX = np.array(ROBOT.max_velocity_rad_s)
+A_MAX = np.array(ROBOT.max_acceleration_rad_s2)
+J_MAX = np.array(ROBOT.max_jerk_rad_s3)
+LIMITS = {"max_velocity": V_MAX, "max_acceleration": A_MAX, "max_jerk": J_MAX}
+DT_S = 1e-3
+
+
+def _panda_path(seed: int, n_waypoints: int = 6) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    steps = rng.uniform(-0.6, 0.6, (n_waypoints - 1, 7))
+    # Some segments move a single joint, some move all of them by very different amounts.
+    steps[0, 1:] = 0.0
+    steps[1] *= np.array([1.0, 0.01, 1.0, 0.05, 1.0, 0.001, 1.0])
+    home = np.array(ROBOT.home_position_rad)
+    return np.vstack([home, home + np.cumsum(steps, axis=0)])
+
+
+def _waypoint_times(trajectory: JointTrajectory, path: np.ndarray) -> np.ndarray:
+    """Times at which the trajectory passes each waypoint (segment boundaries)."""
+    starts = trajectory.segment_start_times_s
+    return np.append(starts, trajectory.duration_s)[: path.shape[0]]
+
+
+@pytest.mark.parametrize(("seed", "v_scale", "a_scale"), [(0, 1.0, 1.0), (1, 0.5, 0.3), (2, 0.1, 1.0)])
+def test_limits_hold_over_the_whole_run(seed: int, v_scale: float, a_scale: float) -> None:
+    path = _panda_path(seed)
+    trajectory = time_parameterize(path, **LIMITS, velocity_scaling=v_scale, acceleration_scaling=a_scale)
+    t, q, qd, qdd = trajectory.sample_uniform(DT_S)
+    assert t[0] == 0.0 and t[-1] == trajectory.duration_s
+    assert np.all(np.diff(t) > 0) and np.all(np.diff(t) <= DT_S + 1e-12)
+    assert np.all(np.abs(qd) <= V_MAX * v_scale + 1e-6)
+    assert np.all(np.abs(qdd) <= A_MAX * a_scale + 1e-6)
+    # Finite-difference jerk: exact inside constant-jerk phases; a sample interval that
+    # straddles a phase switch averages two jerks, so it can only be smaller in magnitude.
+    jerk = np.diff(qdd, axis=0) / np.diff(t)[:, None]
+    assert np.all(np.abs(jerk) <= J_MAX * a_scale * (1 + 1e-6) + 1e-6)
+    # Some joint actually reaches each limit (the profile is time-optimal, not timid).
+    assert np.isclose(np.abs(qd).max(axis=0) / (V_MAX * v_scale), 1.0, atol=1e-6).any()
+    assert np.isclose(np.abs(qdd).max(axis=0) / (A_MAX * a_scale), 1.0, atol=1e-6).any()
+
+
+def test_passes_every_waypoint_at_rest_with_exact_endpoints() -> None:
+    path = _panda_path(3)
+    trajectory = time_parameterize(path, **LIMITS)
+    assert trajectory.dof == 7
+    for t_s, waypoint in zip(_waypoint_times(trajectory, path), path):
+        q, qd, qdd = trajectory.sample(t_s)
+        np.testing.assert_allclose(q, waypoint, atol=1e-12)
+        np.testing.assert_allclose(qd, 0.0, atol=1e-9)
+        np.testing.assert_allclose(qdd, 0.0, atol=1e-9)
+    q0, _, _ = trajectory.sample(0.0)
+    q_end, qd_end, qdd_end = trajectory.sample(trajectory.duration_s)
+    np.testing.assert_array_equal(q0, path[0])
+    np.testing.assert_array_equal(q_end, path[-1])
+    np.testing.assert_array_equal(qd_end, 0.0)
+    np.testing.assert_array_equal(qdd_end, 0.0)
+    # Sampling outside [0, duration] clamps.
+    np.testing.assert_array_equal(trajectory.sample(-1.0)[0], path[0])
+    np.testing.assert_array_equal(trajectory.sample(trajectory.duration_s + 5.0)[0], path[-1])
+
+
+def test_stays_on_the_polyline() -> None:
+    path = _panda_path(4)
+    trajectory = time_parameterize(path, **LIMITS)
+    t, q, qd, _ = trajectory.sample_uniform(DT_S)
+    boundaries = _waypoint_times(trajectory, path)
+    segment = np.clip(np.searchsorted(boundaries, t, side="right") - 1, 0, path.shape[0] - 2)
+    start, end = path[segment], path[segment + 1]
+    delta = end - start
+    s = np.einsum("ij,ij->i", q - start, delta) / np.einsum("ij,ij->i", delta, delta)
+    deviation = np.linalg.norm(q - (start + s[:, None] * delta), axis=1)
+    assert deviation.max() < 1e-9
+    assert s.min() > -1e-9 and s.max() < 1 + 1e-9
+    # Velocity always points along the segment, never backwards.
+    assert (np.einsum("ij,ij->i", qd, delta) >= -1e-9).all()
+
+
+def test_scaling_lengthens_the_trajectory() -> None:
+    path = _panda_path(5)
+    full = time_parameterize(path, **LIMITS)
+    half = time_parameterize(path, **LIMITS, velocity_scaling=0.5, acceleration_scaling=0.5)
+    slow = time_parameterize(path, **LIMITS, velocity_scaling=0.1)
+    assert full.duration_s < half.duration_s < slow.duration_s
+
+
+def test_duplicate_waypoints_are_skipped() -> None:
+    path = _panda_path(6, n_waypoints=3)
+    with_duplicates = np.vstack([path[0], path[0], path[1], path[1] + 1e-12, path[2], path[2]])
+    plain = time_parameterize(path, **LIMITS)
+    deduplicated = time_parameterize(with_duplicates, **LIMITS)
+    assert deduplicated.duration_s == pytest.approx(plain.duration_s, rel=1e-9)
+    np.testing.assert_array_equal(deduplicated.sample(deduplicated.duration_s)[0], path[2])
+
+
+def test_single_waypoint_and_all_equal_waypoints_hold_still() -> None:
+    q = np.array(ROBOT.home_position_rad)
+    for path in (q[None, :], np.vstack([q, q, q])):
+        trajectory = time_parameterize(path, **LIMITS)
+        assert trajectory.duration_s == 0.0
+        t, qs, qd, qdd = trajectory.sample_uniform(DT_S)
+        assert t.tolist() == [0.0]
+        np.testing.assert_array_equal(qs[0], q)
+        np.testing.assert_array_equal(qd, 0.0)
+
+
+@pytest.mark.parametrize("travel", [1e-8, 1e-12, 1e-300])
+def test_tiny_moves_are_timed_without_overflow(travel: float) -> None:
+    q = np.array(ROBOT.home_position_rad)
+    path = np.vstack([q, q + travel * np.linspace(0.0, 1.0, 7), q + 0.3])
+    trajectory = time_parameterize(path, **LIMITS)
+    t, qs, qd, qdd = trajectory.sample_uniform(DT_S)
+    assert np.isfinite(qs).all() and np.isfinite(qd).all() and np.isfinite(qdd).all()
+    assert np.all(np.abs(qd) <= V_MAX + 1e-6)
+    np.testing.assert_array_equal(qs[-1], path[-1])
+
+
+def test_single_joint_path() -> None:
+    trajectory = time_parameterize([[0.0], [1.0], [0.5]], max_velocity=[1.0], max_acceleration=[2.0], max_jerk=[10.0])
+    assert trajectory.dof == 1
+    np.testing.assert_allclose(trajectory.sample(trajectory.duration_s)[0], [0.5])
+
+
+def test_trajectory_is_read_only() -> None:
+    trajectory = time_parameterize(_panda_path(7), **LIMITS)
+    with pytest.raises(AttributeError):
+        trajectory.duration_s = 1.0  # type: ignore[misc]
+    with pytest.raises(AttributeError):
+        trajectory.extra = 1  # type: ignore[attr-defined]
+    q, _, _ = trajectory.sample(0.3)
+    q[:] = 100.0  # samples are fresh arrays: mutating one does not leak into the trajectory
+    assert np.all(trajectory.sample(0.3)[0] < 100.0)
+
+
+@pytest.mark.parametrize(
+    ("path", "kwargs", "match"),
+    [
+        (np.full((3, 7), np.nan), {}, "path"),
+        (np.zeros(7), {}, "path"),
+        (np.zeros((0, 7)), {}, "path"),
+        (np.zeros((3, 6)), {}, "max_velocity"),
+        (np.zeros((3, 7)), {"velocity_scaling": 0.0}, "velocity_scaling"),
+        (np.zeros((3, 7)), {"velocity_scaling": 1.5}, "velocity_scaling"),
+        (np.zeros((3, 7)), {"acceleration_scaling": 0.0}, "acceleration_scaling"),
+        (np.zeros((3, 7)), {"acceleration_scaling": 1.5}, "acceleration_scaling"),
+        (np.zeros((3, 7)), {"acceleration_scaling": float("nan")}, "acceleration_scaling"),
+        (np.zeros((3, 7)), {"max_jerk": -J_MAX}, "max_jerk"),
+        (np.zeros((3, 7)), {"max_acceleration": np.full(7, np.inf)}, "max_acceleration"),
+    ],
+)
+def test_bad_inputs_raise(path: np.ndarray, kwargs: dict, match: str) -> None:
+    arguments = {**LIMITS, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        time_parameterize(path, **arguments)
+
+
+def test_bad_sample_arguments_raise() -> None:
+    trajectory = time_parameterize(_panda_path(8), **LIMITS)
+    with pytest.raises(ValueError, match="dt_s"):
+        trajectory.sample_uniform(0.0)
+    with pytest.raises(ValueError, match="t_s"):
+        trajectory.sample(float("nan"))
