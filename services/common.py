@@ -1,0 +1,149 @@
+"""What every service shares: the Zenoh session, signal handling, structured query replies."""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from robonav.pipeline.messages import ErrorReply
+from robonav.pipeline.wire import ErrorCode, Message, ProtocolError
+from robonav.services.config import ZenohConfig
+
+log = logging.getLogger("robonav")
+
+
+def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
+    """Translate our strict Zenoh section into a `zenoh.Config`."""
+    zcfg = zenoh.Config()
+    zcfg.insert_json5("mode", json.dumps(cfg.mode))
+    zcfg.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+    if cfg.mode == "router":
+        zcfg.insert_json5("listen/endpoints", json.dumps(list(cfg.listen or cfg.connect)))
+        zcfg.insert_json5("connect/endpoints", json.dumps([]))
+    else:
+        zcfg.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+        zcfg.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+    return zcfg
+
+
+def open_session(cfg: ZenohConfig) -> zenoh.Session:
+    return zenoh.open(to_zenoh_config(cfg))
+
+
+def stop_on_signals(*signums: int) -> threading.Event:
+    """An event set by SIGINT/SIGTERM (docker stop sends SIGTERM). Main thread only."""
+    stop = threading.Event()
+
+    def handler(signum: int, _frame: Any) -> None:
+        log.info("signal %s: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    for signum in signums or (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, handler)
+    return stop
+
+
+def reply_ok(query: zenoh.Query, message: Message) -> None:
+    query.reply(query.key_expr, message.to_wire())
+
+
+def reply_error(query: zenoh.Query, code: ErrorCode, message: str, details: dict[str, Any] | None = None) -> None:
+    log.warning("%s: %s %s", query.key_expr, code.value, message)
+    query.reply_err(ErrorReply.from_error(ProtocolError(code, message, details)).to_wire())
+
+
+def guarded_queryable(handler: Callable[[zenoh.Query], None], name: str) -> Callable[[zenoh.Query], None]:
+    """Wrap a query handler so that any exception becomes a structured error, never a dead service."""
+
+    def wrapped(query: zenoh.Query) -> None:
+        try:
+            handler(query)
+        except ProtocolError as exc:
+            reply_error(query, exc.code, exc.message, exc.details)
+        except Exception as exc:  # a service never dies on input; the error is logged and answered
+            log.exception("%s: unexpected error", name)
+            try:
+                reply_error(query, ErrorCode.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
+            except Exception:
+                log.exception("%s: could not send the error reply", name)
+
+    return wrapped
+
+
+def guarded_subscriber(handler: Callable[[zenoh.Sample], None], name: str) -> Callable[[zenoh.Sample], None]:
+    """Wrap a subscriber callback: bad samples are counted and logged once per kind, never raised."""
+    seen: dict[str, int] = {}
+
+    def wrapped(sample: zenoh.Sample) -> None:
+        try:
+            handler(sample)
+        except Exception as exc:
+            kind = exc.code.value if isinstance(exc, ProtocolError) else type(exc).__name__
+            seen[kind] = seen.get(kind, 0) + 1
+            if seen[kind] == 1:
+                log.warning("%s: dropped a sample on %s (%s: %s); further ones of this kind are counted silently",
+                            name, sample.key_expr, kind, exc)
+
+    wrapped.dropped = seen  # type: ignore[attr-defined]
+    return wrapped
+
+
+def query_payload(query: zenoh.Query) -> bytes:
+    return query.payload.to_bytes() if query.payload is not None else b""
+
+
+def setup_logging(level: str = "INFO") -> None:
+    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+class Node:
+    """A service's state while its session is open; `close` undeclares what it declared."""
+
+    def close(self) -> None:  # pragma: no cover - trivial default
+        pass
+
+    def spin(self, stop: threading.Event) -> None:
+        """Block until `stop` is set; services with their own loop override this."""
+        stop.wait()
+
+
+def run_service(name: str, argv: list[str] | None, build: Callable[[Any, zenoh.Session], Node]) -> int:
+    """parse → config → session → build node → liveliness token → spin → teardown.
+
+    Exit codes: 0 after a clean stop (SIGINT/SIGTERM), 2 for a bad config.
+    """
+    import argparse
+
+    from robonav.pipeline.config import ConfigError
+    from robonav.services.config import load_config
+    from robonav.services.keys import Keys
+
+    parser = argparse.ArgumentParser(prog=f"robonav serve {name}", description=f"Run the {name} service.")
+    parser.add_argument("--config", help="YAML config file (default: the packaged configs/default.yaml)")
+    parser.add_argument("--log-level", default="INFO")
+    args = parser.parse_args(argv)
+    setup_logging(args.log_level)
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as exc:
+        log.error("%s", exc)
+        return 2
+    stop = stop_on_signals(signal.SIGINT, signal.SIGTERM)
+    with open_session(cfg.zenoh) as session:
+        node = build(cfg, session)
+        token = session.liveliness().declare_token(Keys(cfg.cell).alive(name))
+        log.info("%s: serving under robonav/%s", name, cfg.cell)
+        try:
+            node.spin(stop)
+        finally:
+            token.undeclare()
+            node.close()
+    log.info("%s: stopped", name)
+    return 0

@@ -1,0 +1,89 @@
+"""Service fixtures: real Zenoh on 127.0.0.1 (multicast scouting off), real service processes."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import yaml
+import zenoh
+
+from robonav.services.client import RobonavClient
+from robonav.services.common import open_session
+from robonav.services.config import ZenohConfig, default_config_path, load_config
+from robonav.services.keys import SERVICES
+
+STACK_START_TIMEOUT_S = 90.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def write_config(directory: Path, name: str, **sections: dict) -> Path:
+    """The packaged default with some sections' keys replaced, written as a YAML file."""
+    data = yaml.safe_load(default_config_path().read_text(encoding="utf-8"))
+    for section, values in sections.items():
+        data.setdefault(section, {}).update(values)
+    path = directory / name
+    path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    load_config(path)  # fail here, not in a service, if the test wrote a bad config
+    return path
+
+
+@pytest.fixture(scope="session")
+def stack_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    # Kinematic following makes the arm track setpoints exactly, so results do not depend on
+    # how busy the machine is; the demo uses the dynamic model.
+    return write_config(tmp_path_factory.mktemp("stack"), "stack.yaml",
+                        zenoh={"connect": [f"tcp/127.0.0.1:{free_port()}"]}, sim={"follow": "kinematic"})
+
+
+@pytest.fixture(scope="session")
+def stack(stack_config: Path) -> Iterator[subprocess.Popen[bytes]]:
+    """`robonav up` as a process; torn down with SIGTERM, which must end it with exit code 0."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([sys.executable, "-m", "robonav.services.cli", "up", "--config", str(stack_config),
+                             "--log-level", "WARNING"], env=env)
+    yield proc
+    proc.send_signal(signal.SIGTERM)
+    code = proc.wait(timeout=30)
+    assert code == 0, f"robonav up exited with {code} after SIGTERM"
+
+
+@pytest.fixture(scope="session")
+def session(stack: subprocess.Popen[bytes], stack_config: Path) -> Iterator[zenoh.Session]:
+    cfg = load_config(stack_config)
+    deadline = time.monotonic() + 20.0
+    while True:  # the router may need a moment to listen
+        try:
+            s = open_session(ZenohConfig(mode="client", connect=cfg.zenoh.connect))
+            break
+        except zenoh.ZError:
+            if time.monotonic() > deadline or stack.poll() is not None:
+                raise
+            time.sleep(0.2)
+    yield s
+    s.close()
+
+
+@pytest.fixture(scope="session")
+def client(session: zenoh.Session, stack: subprocess.Popen[bytes]) -> Iterator[RobonavClient]:
+    c = RobonavClient(session, "arm0")
+    missing = c.wait_for_services(SERVICES, STACK_START_TIMEOUT_S)
+    assert not missing, f"services not alive: {missing}"
+    # A map published after every service was up, so the planner has one too.
+    alive_at = time.time()
+    assert c.wait_for(lambda: c.occupancy is not None and c.occupancy.stamp > alive_at and c.joint_state is not None,
+                      STACK_START_TIMEOUT_S), "no occupancy map or joint state"
+    yield c
+    c.close()
