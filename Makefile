@@ -1,0 +1,40 @@
+# Two commands on a fresh Debian machine: `make demo` and `make test`.
+# Each installs what it needs (Debian packages when missing, a venv, the package) and then runs.
+
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+# open3d needs libusb at import time; libgomp for its OpenMP kernels.
+DEB_PACKAGES := libusb-1.0-0 libgomp1
+
+.PHONY: demo test setup system-deps clean
+
+demo: setup
+	mkdir -p out
+	$(VENV)/bin/robonav demo --seed 0 --json out/demo-summary.json
+
+test: setup
+	$(PY) -m pytest
+
+setup: system-deps $(STAMP)
+
+system-deps:
+	@missing=""; \
+	for pkg in $(DEB_PACKAGES); do dpkg -s $$pkg >/dev/null 2>&1 || missing="$$missing $$pkg"; done; \
+	$(PYTHON) -c "import venv, ensurepip" >/dev/null 2>&1 || missing="$$missing python3-venv"; \
+	if [ -n "$$missing" ]; then \
+		echo "installing Debian packages:$$missing"; \
+		sudo=""; [ "$$(id -u)" = 0 ] || sudo=sudo; \
+		$$sudo apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$sudo apt-get install -y -qq $$missing; \
+	fi
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -c "import sys; assert sys.version_info >= (3, 11), 'Python >= 3.11 is required, found ' + sys.version"
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[test]"
+	touch $(STAMP)
+
+clean:
+	rm -rf $(VENV) out .pytest_cache build *.egg-info
