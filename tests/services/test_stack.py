@@ -124,3 +124,27 @@ def test_example_client_plans_and_executes_with_only_zenoh_and_msgpack(client: R
     assert '"result": "succeeded"' in run.stdout
     assert client.joint_state is not None
     assert client.wait_for(lambda: np.max(np.abs(client.joint_state.position - goal)) < 1e-3, 5.0)  # type: ignore[union-attr]
+
+
+def test_perception_survives_bad_clouds(client: RobonavClient, session: zenoh.Session) -> None:
+    key = "robonav/arm0/camera/cam0/cloud"
+    nan_points = np.full((100, 3), np.nan, dtype=np.float32)
+    bad_payloads = [
+        b"\x00garbage",
+        msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0", "points": "none"}),
+        msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0",
+                       "points": {"dtype": "<f4", "shape": [100, 2], "data": np.zeros(200, np.float32).tobytes()}}),
+        msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0",
+                       "points": {"dtype": "<f4", "shape": [100, 3], "data": nan_points.tobytes()}}),
+        msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0",
+                       "points": {"dtype": "<f4", "shape": [0, 3], "data": b""}}),
+        msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "nobody",
+                       "points": {"dtype": "<f4", "shape": [1, 3], "data": np.ones(3, np.float32).tobytes()}}),
+    ]
+    for payload in bad_payloads:
+        session.put(key, payload)
+        time.sleep(0.15)  # latest-only: give each its own cycle
+    after = time.time()
+    assert client.wait_for(lambda: client.occupancy is not None and client.occupancy.stamp > after, 10.0), \
+        "perception stopped publishing maps after bad clouds"
+    assert "perception" in client.alive_services()
