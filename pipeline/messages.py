@@ -23,6 +23,12 @@ def _check_same_length(owner: str, names: tuple[str, ...], **arrays: np.ndarray 
             raise ValueError(f"{owner}: '{key}' has {array.shape[-1]} joint values but {len(names)} joint names")
 
 
+def _check_scaling_factors(owner: str, velocity: float | None, acceleration: float | None) -> None:
+    for key, value in (("max_velocity_scaling_factor", velocity), ("max_acceleration_scaling_factor", acceleration)):
+        if value is not None and not 0.0 < value <= 1.0:
+            raise ValueError(f"{owner}: {key} must be in (0, 1], got {value}")
+
+
 @dataclass(frozen=True)
 class JointState(Message):
     """`robot/joint_states` (pub): the measured joint state."""
@@ -92,10 +98,7 @@ class PlanRequest(Message):
         elif self.start_positions is not None and self.start_positions.shape != self.goal_positions.shape:
             raise ValueError(f"PlanRequest: start_positions has {self.start_positions.shape[0]} values, "
                              f"goal_positions {self.goal_positions.shape[0]}")
-        for key in ("max_velocity_scaling_factor", "max_acceleration_scaling_factor"):
-            value = getattr(self, key)
-            if value is not None and not 0.0 < value <= 1.0:
-                raise ValueError(f"PlanRequest: {key} must be in (0, 1], got {value}")
+        _check_scaling_factors("PlanRequest", self.max_velocity_scaling_factor, self.max_acceleration_scaling_factor)
         if self.allowed_planning_time is not None and self.allowed_planning_time <= 0:
             raise ValueError(f"PlanRequest: allowed_planning_time must be > 0, got {self.allowed_planning_time}")
 
@@ -138,10 +141,8 @@ class ExecuteRequest(Message):
             raise ValueError("ExecuteRequest: path has no waypoints")
         if self.joint_names is not None:
             _check_same_length("ExecuteRequest", self.joint_names, path=self.path)
-        for key in ("max_velocity_scaling_factor", "max_acceleration_scaling_factor"):
-            value = getattr(self, key)
-            if value is not None and not 0.0 < value <= 1.0:
-                raise ValueError(f"ExecuteRequest: {key} must be in (0, 1], got {value}")
+        _check_scaling_factors("ExecuteRequest", self.max_velocity_scaling_factor,
+                               self.max_acceleration_scaling_factor)
 
 
 @dataclass(frozen=True)

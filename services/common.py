@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import signal
@@ -11,9 +12,11 @@ from typing import Any
 
 import zenoh
 
+from robonav.pipeline.config import ConfigError
 from robonav.pipeline.messages import ErrorReply
 from robonav.pipeline.wire import ErrorCode, Message, ProtocolError
-from robonav.services.config import ZenohConfig
+from robonav.services.config import RobonavConfig, ZenohConfig, load_config
+from robonav.services.keys import Keys
 
 log = logging.getLogger("robonav")
 
@@ -114,27 +117,33 @@ class Node:
         stop.wait()
 
 
-def run_service(name: str, argv: list[str] | None, build: Callable[[Any, zenoh.Session], Node]) -> int:
-    """parse → config → session → build node → liveliness token → spin → teardown.
+def parse_args_and_config(prog: str, description: str, argv: list[str] | None,
+                          ) -> tuple[argparse.Namespace, RobonavConfig] | None:
+    """Parse `--config` and `--log-level`, set up logging, load the config.
 
-    Exit codes: 0 after a clean stop (SIGINT/SIGTERM), 2 for a bad config.
+    Returns None after logging the error when the config is bad (callers exit with code 2).
     """
-    import argparse
-
-    from robonav.pipeline.config import ConfigError
-    from robonav.services.config import load_config
-    from robonav.services.keys import Keys
-
-    parser = argparse.ArgumentParser(prog=f"robonav serve {name}", description=f"Run the {name} service.")
+    parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("--config", help="YAML config file (default: the packaged configs/default.yaml)")
     parser.add_argument("--log-level", default="INFO")
     args = parser.parse_args(argv)
     setup_logging(args.log_level)
     try:
-        cfg = load_config(args.config)
+        return args, load_config(args.config)
     except ConfigError as exc:
         log.error("%s", exc)
+        return None
+
+
+def run_service(name: str, argv: list[str] | None, build: Callable[[RobonavConfig, zenoh.Session], Node]) -> int:
+    """parse → config → session → build node → liveliness token → spin → teardown.
+
+    Exit codes: 0 after a clean stop (SIGINT/SIGTERM), 2 for a bad config.
+    """
+    loaded = parse_args_and_config(f"robonav serve {name}", f"Run the {name} service.", argv)
+    if loaded is None:
         return 2
+    _, cfg = loaded
     stop = stop_on_signals(signal.SIGINT, signal.SIGTERM)
     with open_session(cfg.zenoh) as session:
         node = build(cfg, session)

@@ -28,6 +28,8 @@ log = logging.getLogger("robonav.perception")
 
 JOINT_HISTORY = 256
 """Joint states kept for matching cloud stamps (2.5 s at 100 Hz)."""
+MAX_JOINT_STATE_GAP_S = 0.25
+"""A cloud is used only if a joint state lies within this of its stamp [s]."""
 
 
 class JointHistory:
@@ -48,7 +50,8 @@ class JointHistory:
             self._stamps.append(state.stamp)
             self._positions.append(q)
 
-    def nearest(self, stamp: float) -> np.ndarray | None:
+    def nearest(self, stamp: float, *, max_gap_s: float) -> np.ndarray | None:
+        """The joint positions whose stamp is nearest `stamp`, if within `max_gap_s`."""
         with self._lock:
             if not self._stamps:
                 return None
@@ -56,7 +59,7 @@ class JointHistory:
             i = bisect.bisect_left(stamps, stamp)
             candidates = [j for j in (i - 1, i) if 0 <= j < len(stamps)]
             best = min(candidates, key=lambda j: abs(stamps[j] - stamp))
-            return self._positions[best]
+            return self._positions[best] if abs(stamps[best] - stamp) <= max_gap_s else None
 
 
 class PerceptionNode(Node):
@@ -69,6 +72,7 @@ class PerceptionNode(Node):
         self.world_from_camera = {cfg.camera.camera_id: cfg.camera.world_from_camera}
         self.published = 0
         self.dropped_unknown_camera = 0
+        self.dropped_no_joint_state = 0
         keys = Keys(cfg.cell)
         self._pub = session.declare_publisher(keys.occupancy)
         self._joint_sub = session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "perception"))
@@ -87,18 +91,24 @@ class PerceptionNode(Node):
                 log.warning("dropping clouds from unknown camera %r (configured: %s)", cloud.camera_id,
                             list(self.world_from_camera))
             return
-        q = self.history.nearest(cloud.stamp)
-        world_from_link = self.robot.link_poses(q) if q is not None else None
+        q = self.history.nearest(cloud.stamp, max_gap_s=MAX_JOINT_STATE_GAP_S)
+        if q is None:
+            # Without the arm's pose the robot cannot be filtered out and would enter the map
+            # as an obstacle around itself: better no update than that.
+            self.dropped_no_joint_state += 1
+            if self.dropped_no_joint_state == 1:
+                log.warning("dropping clouds: no joint state within %.2f s of the cloud stamp", MAX_JOINT_STATE_GAP_S)
+            return
+        world_from_link = self.robot.link_poses(q)
         # Points dropped by the crop or the self-filter still clear the space their rays crossed,
         # so a moved arm or object leaves no ghost where nothing is seen behind it.
         points_world, clear_only_world, stats = process_cloud_with_clearing(
             cloud.points, world_from_camera=world_from_camera, config=self.cfg.perception,
-            self_filter=self.self_filter if world_from_link is not None else None, world_from_link=world_from_link,
+            self_filter=self.self_filter, world_from_link=world_from_link,
         )
         self.map.insert(points_world, world_from_camera[:3, 3], clear_only_world=clear_only_world)
-        if world_from_link is not None:
-            # Voxels inside the robot are traces of the arm that its body now hides from every ray.
-            self.map.free_voxels_where(lambda centres: ~self.self_filter.outside_mask(centres, world_from_link))
+        # Voxels inside the robot are traces of the arm that its body now hides from every ray.
+        self.map.free_voxels_where(lambda centres: ~self.self_filter.outside_mask(centres, world_from_link))
         self.published += 1
         self._pub.put(Occupancy(
             stamp=cloud.stamp, resolution_m=self.cfg.perception.resolution_m,

@@ -6,7 +6,6 @@ rendering, ray casting or planning.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import signal
 import subprocess
@@ -18,9 +17,8 @@ from pathlib import Path
 
 import zenoh
 
-from robonav.pipeline.config import ConfigError
-from robonav.services.common import setup_logging, stop_on_signals, to_zenoh_config
-from robonav.services.config import RobonavConfig, ZenohConfig, load_config
+from robonav.services.common import parse_args_and_config, stop_on_signals, to_zenoh_config
+from robonav.services.config import RobonavConfig, ZenohConfig
 from robonav.services.keys import SERVICES
 
 log = logging.getLogger("robonav.up")
@@ -67,16 +65,10 @@ class Stack:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="robonav up", description="Run a Zenoh router and every service until Ctrl-C.")
-    parser.add_argument("--config", help="YAML config file (default: the packaged configs/default.yaml)")
-    parser.add_argument("--log-level", default="INFO")
-    args = parser.parse_args(argv)
-    setup_logging(args.log_level)
-    try:
-        cfg = load_config(args.config)
-    except ConfigError as exc:
-        log.error("%s", exc)
+    loaded = parse_args_and_config("robonav up", "Run a Zenoh router and every service until Ctrl-C.", argv)
+    if loaded is None:
         return 2
+    args, cfg = loaded
     stop = stop_on_signals(signal.SIGINT, signal.SIGTERM)
     stack = Stack(cfg, args.config, log_level=args.log_level)
     failed: dict[str, int] = {}

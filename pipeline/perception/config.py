@@ -21,6 +21,13 @@ class PerceptionConfig:
     """Robot link shapes grow by this much before removing the robot's own points [m]."""
     inflation_m: float = 0.02
     """Occupied voxels are dilated by this distance in the published map [m]."""
+    fill_below_surfaces: bool = False
+    """Count every voxel below a seen surface, down to `workspace_min_m[2]`, as a hit.
+
+    One camera never sees an object's far side, and OctoMap leaves that space unknown, which
+    the planner treats as free. Assuming what is seen rests on solid matter (true for objects
+    on a table or floor; conservative under overhangs) fills objects' unseen interiors and
+    back halves. Rays that later pass through the filled space clear it as usual."""
     max_update_rate_hz: float = 10.0
     """Clouds arriving faster than this are dropped (latest-only)."""
     prob_hit: float = 0.7

@@ -148,3 +148,18 @@ def test_perception_survives_bad_clouds(client: RobonavClient, session: zenoh.Se
     assert client.wait_for(lambda: client.occupancy is not None and client.occupancy.stamp > after, 10.0), \
         "perception stopped publishing maps after bad clouds"
     assert "perception" in client.alive_services()
+
+
+def test_joint_history_matches_cloud_stamps() -> None:
+    from robonav.pipeline.messages import JointState
+    from robonav.services.perception import JointHistory
+
+    names = DEFAULT.robot.joint_names
+    history = JointHistory(names)
+    assert history.nearest(1.0, max_gap_s=1.0) is None
+    for stamp in (1.0, 1.01, 1.02):
+        history.add(JointState(stamp=stamp, names=names, position=np.full(7, stamp), velocity=np.zeros(7)))
+    history.add(JointState(stamp=0.5, names=names, position=np.zeros(7), velocity=np.zeros(7)))  # out of order: ignored
+    np.testing.assert_allclose(history.nearest(1.012, max_gap_s=0.1), 1.01)
+    assert history.nearest(2.0, max_gap_s=0.1) is None
+    np.testing.assert_allclose(history.nearest(0.99, max_gap_s=0.1), 1.0)

@@ -298,3 +298,28 @@ def test_free_voxels_where_frees_only_flagged_voxels() -> None:
     assert freed == int(np.sum(before[:, 0] > 0.0)) > 0
     assert np.all(after[:, 0] <= 0.0)
     assert after.shape[0] == before.shape[0] - freed
+
+
+def _box_surface_seen_from_front() -> np.ndarray:
+    """Points on the +x face and the top of a 10 cm cube standing on z = 0 at x, y = 0.5, 0."""
+    s = np.arange(-0.05, 0.05, 0.005)
+    a, b = np.meshgrid(s, s)
+    plus_x = np.column_stack([np.full(a.size, 0.55), a.ravel(), 0.05 + b.ravel()])
+    top = np.column_stack([0.5 + a.ravel(), b.ravel(), np.full(a.size, 0.1)])
+    return np.vstack([plus_x, top])
+
+
+@pytest.mark.parametrize("fill", [False, True])
+def test_fill_below_surfaces_covers_the_unseen_back_of_an_object(fill: bool) -> None:
+    origin = np.array([1.5, 0.0, 0.8])
+    occupancy = OccupancyMap(PerceptionConfig(resolution_m=0.02, workspace_min_m=(-1.0, -1.0, 0.0),
+                                              fill_below_surfaces=fill))
+    for _ in range(3):
+        occupancy.insert(_box_surface_seen_from_front(), origin)
+    centres = occupancy.occupied_centers_m()
+    # The voxel just inside the unseen -x face, mid-height.
+    has_back = bool(np.any(np.all(np.abs(centres - np.array([0.45 + 0.01, 0.01, 0.05])) < 0.011, axis=1)))
+    assert has_back is fill
+    # Nothing is filled outside the cube's footprint (no sideways growth), nor below the floor.
+    assert np.all(np.abs(centres[:, 0] - 0.5) <= 0.07) and np.all(np.abs(centres[:, 1]) <= 0.07)
+    assert centres[:, 2].min() >= 0.0
