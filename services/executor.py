@@ -36,8 +36,11 @@ class ExecutorNode(Node):
         self._lock = threading.Lock()
         self._joint_state: JointState | None = None
         keys = Keys(cfg.cell)
-        self._setpoint_pub = session.declare_publisher(keys.setpoint)
-        self._status_pub = session.declare_publisher(keys.status)
+        # Setpoints and status must not be dropped under load (Zenoh's default for puts): a
+        # lost final setpoint leaves the arm short of the goal while the status says done.
+        self._setpoint_pub = session.declare_publisher(keys.setpoint, congestion_control=zenoh.CongestionControl.BLOCK,
+                                                       priority=zenoh.Priority.REAL_TIME, express=True)
+        self._status_pub = session.declare_publisher(keys.status, congestion_control=zenoh.CongestionControl.BLOCK)
         self._sub = session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "executor"))
         self._queryables = [
             session.declare_queryable(keys.execute, guarded_queryable(self.handle_execute, "executor")),
