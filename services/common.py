@@ -8,17 +8,18 @@ import logging
 import signal
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 import zenoh
 
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.messages import ErrorReply
-from robonav.pipeline.wire import ErrorCode, Message, ProtocolError
+from robonav.pipeline.wire import SCHEMA_VERSION, ErrorCode, Message, ProtocolError
 from robonav.services.config import RobonavConfig, ZenohConfig, load_config
 from robonav.services.keys import Keys
 
 log = logging.getLogger("robonav")
+M = TypeVar("M", bound=Message)
 
 
 def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
@@ -97,8 +98,10 @@ def guarded_subscriber(handler: Callable[[zenoh.Sample], None], name: str) -> Ca
     return wrapped
 
 
-def query_payload(query: zenoh.Query) -> bytes:
-    return query.payload.to_bytes() if query.payload is not None else b""
+def decode_request(query: zenoh.Query, cls: type[M]) -> M:
+    """The query's request; an empty payload means every key at its default (`{v: 1}`)."""
+    payload = query.payload.to_bytes() if query.payload is not None else b""
+    return cls.from_wire(payload) if payload else cls.from_dict({"v": SCHEMA_VERSION})
 
 
 def setup_logging(level: str = "INFO") -> None:

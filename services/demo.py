@@ -42,19 +42,20 @@ def write_seeded_config(source: Path, seed: int, directory: Path) -> Path:
     return out
 
 
-def straight_line_blocked(robot: RobotModel, cfg: RobonavConfig, start: np.ndarray, goal: np.ndarray) -> bool:
-    """Whether the direct joint-space segment hits the true scene: the goal needs a detour."""
-    world = CollisionWorld(robot, padding_m=0.0)
+def true_scene(cfg: RobonavConfig) -> CollisionWorld:
+    """The sim's obstacles as the planner's collision world, unpadded: ground truth for the report."""
+    world = CollisionWorld(RobotModel.from_config(cfg.robot), padding_m=0.0)
     world.set_objects(cfg.sim.objects)
-    return not world.motion_valid(start, goal, 0.01)
+    return world
 
 
-def run_goal(client: RobonavClient, robot: RobotModel, cfg: RobonavConfig, index: int, goal: np.ndarray,
+def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, index: int, goal: np.ndarray,
              seed: int) -> dict[str, Any]:
     assert client.joint_state is not None
     start = client.joint_state.position.copy()
+    # Blocked means the goal needs a detour around a real obstacle.
     record: dict[str, Any] = {"index": index, "goal_rad": goal.round(4).tolist(),
-                              "straight_line_blocked": straight_line_blocked(robot, cfg, start, goal)}
+                              "straight_line_blocked": not truth.motion_valid(start, goal, 0.01)}
     plan = client.plan(goal, seed=seed + index, request_id=f"demo-{index}")
     if isinstance(plan, ErrorReply):
         record.update(reached=False, error=f"plan: {plan.code}: {plan.message}")
@@ -84,7 +85,7 @@ def run_goal(client: RobonavClient, robot: RobotModel, cfg: RobonavConfig, index
 
 def run_demo(cfg: RobonavConfig, config_path: Path, seed: int) -> dict[str, Any]:
     started = time.monotonic()
-    robot = RobotModel.from_config(cfg.robot)
+    truth = true_scene(cfg)
     stack = Stack(cfg, str(config_path))
     summary: dict[str, Any] = {"seed": seed, "goals": [], "goal_count": len(cfg.demo.goals_rad)}
     try:
@@ -102,7 +103,7 @@ def run_demo(cfg: RobonavConfig, config_path: Path, seed: int) -> dict[str, Any]
                 at_rest = time.time()
                 client.wait_for(lambda: client.occupancy is not None and client.occupancy.stamp > at_rest, 5.0)
                 try:
-                    record = run_goal(client, robot, cfg, index, np.asarray(goal, float), seed)
+                    record = run_goal(client, truth, cfg, index, np.asarray(goal, float), seed)
                 except QueryFailed as exc:
                     record = {"index": index, "reached": False, "error": str(exc)}
                 log.info("goal %d: %s", index, record)

@@ -17,7 +17,7 @@ from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.trajectory.execution import ExecutionStateMachine, Limits
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.pipeline.wire import ErrorCode, ProtocolError
-from robonav.services.common import Node, guarded_queryable, guarded_subscriber, query_payload, reply_ok, run_service
+from robonav.services.common import Node, guarded_queryable, guarded_subscriber, decode_request, reply_ok, run_service
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
 
@@ -63,7 +63,7 @@ class ExecutorNode(Node):
         return np.array([by_name[n] for n in self.robot.joint_names])
 
     def handle_execute(self, query: zenoh.Query) -> None:
-        request = ExecuteRequest.from_wire(query_payload(query))
+        request = decode_request(query, ExecuteRequest)
         path = reorder_to_robot(request.path, request.joint_names, self.robot.joint_names, "path")
         for i, q in enumerate(path):
             violations = self.robot.check_joint_limits(q)
@@ -93,7 +93,7 @@ class ExecutorNode(Node):
         reply_ok(query, ExecuteResponse(trajectory_id=trajectory_id, duration_s=trajectory.duration_s, waypoint_count=len(path)))
 
     def handle_stop(self, query: zenoh.Query) -> None:
-        request = StopRequest.from_wire(query_payload(query)) if query_payload(query) else StopRequest()
+        request = decode_request(query, StopRequest)
         with self._lock:
             self.machine.stop(time.monotonic(), emergency=request.emergency,
                               scaling=self.cfg.executor.acceleration_scaling)

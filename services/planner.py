@@ -21,7 +21,7 @@ from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.planning.rrt_connect import seed_ompl_once
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.wire import ErrorCode, ProtocolError
-from robonav.services.common import (Node, guarded_queryable, guarded_subscriber, query_payload, reply_error,
+from robonav.services.common import (Node, guarded_queryable, guarded_subscriber, decode_request, reply_error,
                                      reply_ok, run_service)
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
@@ -99,7 +99,7 @@ class PlannerNode(Node):
                                 {"age_s": age})
 
     def handle_plan(self, query: zenoh.Query) -> None:
-        request = PlanRequest.from_wire(query_payload(query))
+        request = decode_request(query, PlanRequest)
         names = self.robot.joint_names
         goal = reorder_to_robot(request.goal_positions, request.joint_names, names, "goal_positions")
         if request.start_positions is not None:

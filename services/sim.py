@@ -17,7 +17,7 @@ from robonav.pipeline.joint_order import reorder_to_robot
 from robonav.pipeline.messages import ContactsRequest, ContactsResponse, JointState, PointCloud, Setpoint
 from robonav.pipeline.perception.depth import points_from_depth
 from robonav.pipeline.sim.world import SimWorld
-from robonav.services.common import Node, guarded_queryable, guarded_subscriber, query_payload, reply_ok, run_service
+from robonav.services.common import Node, guarded_queryable, guarded_subscriber, decode_request, reply_ok, run_service
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
 
@@ -46,7 +46,10 @@ class ContactTracker:
         return new
 
     def reset(self) -> None:
-        self.__init__()  # type: ignore[misc]
+        """Zero the counters; pairs still touching are not counted again until they separate."""
+        self.count = 0
+        self.pairs = set(self._touching)
+        self.min_distance_m = float("inf")
 
 
 class SimNode(Node):
@@ -70,8 +73,7 @@ class SimNode(Node):
             self._setpoint = setpoint
 
     def handle_contacts(self, query: zenoh.Query) -> None:
-        payload = query_payload(query)
-        request = ContactsRequest.from_wire(payload) if payload else ContactsRequest()
+        request = decode_request(query, ContactsRequest)
         with self._lock:
             distance = self.contacts.min_distance_m
             response = ContactsResponse(contact_count=self.contacts.count, pairs=tuple(sorted(self.contacts.pairs)),
