@@ -17,6 +17,7 @@ from robonav.pipeline.messages import (ContactsRequest, ContactsResponse, ErrorR
                                        ExecutorStatus, JointState, Occupancy, PlanRequest, PlanResponse, StopRequest,
                                        StopResponse, decode_reply)
 from robonav.pipeline.wire import Message
+from robonav.services.common import declare_latched_subscriber
 from robonav.services.keys import Keys
 
 M = TypeVar("M", bound=Message)
@@ -38,7 +39,7 @@ class RobonavClient:
         self.status: ExecutorStatus | None = None
         self._subs = [
             session.declare_subscriber(self.keys.joint_states, self._on(JointState, "joint_state")),
-            session.declare_subscriber(self.keys.occupancy, self._on(Occupancy, "occupancy")),
+            declare_latched_subscriber(session, self.keys.occupancy, self._on(Occupancy, "occupancy")),
             session.declare_subscriber(self.keys.status, self._on(ExecutorStatus, "status")),
         ]
 

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 import zenoh
+import zenoh.ext
 
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.messages import ErrorReply
@@ -27,6 +28,8 @@ def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
     zcfg = zenoh.Config()
     zcfg.insert_json5("mode", json.dumps(cfg.mode))
     zcfg.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+    # Latched topics (zenoh-ext advanced publishers with a cache) need timestamped samples.
+    zcfg.insert_json5("timestamping/enabled", "true")
     if cfg.mode == "router":
         zcfg.insert_json5("listen/endpoints", json.dumps(list(cfg.listen or cfg.connect)))
         zcfg.insert_json5("connect/endpoints", json.dumps([]))
@@ -38,6 +41,19 @@ def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
 
 def open_session(cfg: ZenohConfig) -> zenoh.Session:
     return zenoh.open(to_zenoh_config(cfg))
+
+
+def declare_latched_publisher(session: zenoh.Session, key: str) -> zenoh.ext.AdvancedPublisher:
+    """A publisher whose last sample late subscribers still get, like a latched ROS topic."""
+    return zenoh.ext.declare_advanced_publisher(session, key, cache=zenoh.ext.CacheConfig(max_samples=1),
+                                                publisher_detection=True)
+
+
+def declare_latched_subscriber(session: zenoh.Session, key: str,
+                               callback: Callable[[zenoh.Sample], None]) -> zenoh.ext.AdvancedSubscriber:
+    """Subscribes and also fetches the cached last sample of every latched publisher, even late ones."""
+    return zenoh.ext.declare_advanced_subscriber(session, key, callback,
+                                                 history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
 
 
 def stop_on_signals(*signums: int) -> threading.Event:

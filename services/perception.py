@@ -20,7 +20,7 @@ from robonav.pipeline.perception.cloud_pipeline import process_cloud_with_cleari
 from robonav.pipeline.perception.occupancy import OccupancyMap
 from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.robot import RobotModel
-from robonav.services.common import Node, guarded_subscriber, run_service
+from robonav.services.common import Node, declare_latched_publisher, guarded_subscriber, run_service
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
 
@@ -74,7 +74,7 @@ class PerceptionNode(Node):
         self.dropped_unknown_camera = 0
         self.dropped_no_joint_state = 0
         keys = Keys(cfg.cell)
-        self._pub = session.declare_publisher(keys.occupancy)
+        self._pub = declare_latched_publisher(session, keys.occupancy)
         self._joint_sub = session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "perception"))
         self._cloud_sub = session.declare_subscriber(keys.all_camera_clouds, zenoh.handlers.RingChannel(1))
         self._cloud_errors = guarded_subscriber(self.on_cloud, "perception")

@@ -21,7 +21,7 @@ from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.planning.rrt_connect import seed_ompl_once
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.wire import ErrorCode, ProtocolError
-from robonav.services.common import (Node, guarded_queryable, guarded_subscriber, decode_request, reply_error,
+from robonav.services.common import (Node, declare_latched_subscriber, guarded_queryable, guarded_subscriber, decode_request, reply_error,
                                      reply_ok, run_service)
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
@@ -49,10 +49,11 @@ class PlannerNode(Node):
         self._pending_map: Occupancy | None = None
         self._map_stamp: float | None = None
         self._map_received_monotonic: float | None = None
+        self._first_map = threading.Event()
         keys = Keys(cfg.cell)
         self._subs = [
             session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "planner")),
-            session.declare_subscriber(keys.occupancy, guarded_subscriber(self.on_occupancy, "planner")),
+            declare_latched_subscriber(session, keys.occupancy, guarded_subscriber(self.on_occupancy, "planner")),
         ]
         self._queryable = session.declare_queryable(keys.plan, guarded_queryable(self.handle_plan, "planner"))
 
@@ -66,6 +67,7 @@ class PlannerNode(Node):
         with self._state_lock:
             self._pending_map = occupancy
             self._map_received_monotonic = time.monotonic()
+        self._first_map.set()
 
     def _apply_pending_map(self) -> None:
         with self._state_lock:
@@ -88,6 +90,8 @@ class PlannerNode(Node):
     def _check_map(self) -> None:
         if not self.cfg.planner.require_occupancy:
             return
+        # A request that races the very first map (services just started) waits for it briefly.
+        self._first_map.wait(self.cfg.planner.first_map_wait_s)
         with self._state_lock:
             received = self._map_received_monotonic
         if received is None:

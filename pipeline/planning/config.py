@@ -27,10 +27,13 @@ class PlannerConfig:
     """A plan request fails with OCCUPANCY_STALE when the newest map is older than this [s]."""
     require_occupancy: bool = True
     """Refuse to plan (OCCUPANCY_MISSING) until a first occupancy map arrived."""
+    first_map_wait_s: float = 2.0
+    """How long a plan request waits for the first occupancy map before OCCUPANCY_MISSING [s]."""
 
     def __post_init__(self) -> None:
         require(self.allowed_planning_time_s > 0, f"planner.allowed_planning_time_s must be > 0, got {self.allowed_planning_time_s}")
         require(self.range_rad >= 0, f"planner.range_rad must be >= 0, got {self.range_rad}")
         require(self.edge_resolution_rad > 0, f"planner.edge_resolution_rad must be > 0, got {self.edge_resolution_rad}")
         require(self.shortcut_iterations >= 0, f"planner.shortcut_iterations must be >= 0, got {self.shortcut_iterations}")
+        require(self.first_map_wait_s >= 0, f"planner.first_map_wait_s must be >= 0, got {self.first_map_wait_s}")
         require(self.occupancy_max_age_s > 0, f"planner.occupancy_max_age_s must be > 0, got {self.occupancy_max_age_s}")

@@ -7,6 +7,7 @@ stale map, no solution in time.
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,8 +19,9 @@ import zenoh
 
 from robonav.pipeline.messages import ErrorReply, JointState, Occupancy, PlanResponse
 from robonav.services.client import RobonavClient
-from robonav.services.common import open_session
+from robonav.services.common import declare_latched_publisher, open_session
 from robonav.services.config import ZenohConfig, load_config
+from robonav.services.keys import Keys
 from robonav.services.planner import PlannerNode
 
 CONFIG = load_config()
@@ -50,7 +52,8 @@ def _wall_map(x_m: float, stamp: float) -> Occupancy:
 def planner(tmp_path: Path) -> Iterator[tuple[PlannerNode, zenoh.Session, RobonavClient]]:
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
-    cfg = dataclasses.replace(CONFIG, planner=dataclasses.replace(CONFIG.planner, occupancy_max_age_s=1.5))
+    cfg = dataclasses.replace(CONFIG, planner=dataclasses.replace(CONFIG.planner, occupancy_max_age_s=1.5,
+                                                                   first_map_wait_s=0.3))
     node_session = open_session(ZenohConfig(connect=(endpoint,)))
     node = PlannerNode(cfg, node_session)
     client_session = open_session(ZenohConfig(connect=(endpoint,)))
@@ -128,3 +131,38 @@ def test_no_solution_within_the_allowed_time(planner: tuple[PlannerNode, zenoh.S
     reply = client.plan(right, start_positions=left, allowed_planning_time=5.0, seed=2)
     assert isinstance(reply, PlanResponse), reply
     assert reply.waypoint_count > 2
+
+
+def test_a_request_racing_the_first_map_waits_for_it(planner: tuple[PlannerNode, zenoh.Session, RobonavClient]) -> None:
+    node, session, client = planner
+    node.cfg = dataclasses.replace(node.cfg, planner=dataclasses.replace(node.cfg.planner, first_map_wait_s=10.0))
+    replies: list = []
+    asking = threading.Thread(target=lambda: replies.append(client.plan(GOAL, start_positions=HOME, seed=1)))
+    asking.start()
+    time.sleep(0.5)
+    assert not replies, "the planner answered before any map existed"
+    session.put(client.keys.occupancy, _wall_map(-0.9, time.time()).to_wire())
+    asking.join(timeout=20.0)
+    assert replies and isinstance(replies[0], PlanResponse), replies
+
+
+def test_a_late_planner_gets_the_last_published_map(tmp_path: Path) -> None:
+    """Perception publishes the map latched: a planner started after it still gets the last one."""
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    sessions = [open_session(ZenohConfig(mode="router", listen=(endpoint,)))]
+    try:
+        sessions.append(open_session(ZenohConfig(connect=(endpoint,))))
+        publisher = declare_latched_publisher(sessions[-1], Keys(CONFIG.cell).occupancy)
+        publisher.put(_wall_map(-0.9, time.time()).to_wire())
+        time.sleep(0.3)
+        sessions.append(open_session(ZenohConfig(connect=(endpoint,))))
+        node = PlannerNode(CONFIG, sessions[-1])
+        deadline = time.monotonic() + 10.0
+        while node._map_received_monotonic is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert node._map_received_monotonic is not None, "the latched map never reached the late planner"
+        node.close()
+        publisher.undeclare()
+    finally:
+        for s in reversed(sessions):
+            s.close()
