@@ -69,6 +69,9 @@ class RobotModel:
         self._root_is_world = self._base_is_fixed and bool(np.allclose(self._world_from_root_fixed, np.eye(4)))
         self._lower = np.array(model.lowerPositionLimit[q_index], dtype=np.float64)
         self._upper = np.array(model.upperPositionLimit[q_index], dtype=np.float64)
+        for name, (lower, upper) in config.position_limits_rad.items():
+            i = config.joint_names.index(name)
+            self._lower[i], self._upper[i] = lower, upper
         self._link_hulls = {
             link: convex_hull(np.vstack([s.hull_vertices for s in shapes]))[0] for link, shapes in link_shapes.items()
         }
@@ -117,12 +120,12 @@ class RobotModel:
 
     @property
     def lower_limits_rad(self) -> FloatArray:
-        """(dof,) URDF lower position limits [rad, or m for prismatic joints]."""
+        """(dof,) lower position limits: the URDF's or `config.position_limits_rad` [rad, or m for prismatic]."""
         return self._lower
 
     @property
     def upper_limits_rad(self) -> FloatArray:
-        """(dof,) URDF upper position limits [rad, or m for prismatic joints]."""
+        """(dof,) upper position limits: the URDF's or `config.position_limits_rad` [rad, or m for prismatic]."""
         return self._upper
 
     @property

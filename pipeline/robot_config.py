@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from robonav.pipeline.config import require
@@ -11,8 +12,9 @@ from robonav.pipeline.config import require
 class RobotConfig:
     """A robot arm as the planner, executor and sim see it.
 
-    Joint position limits come from the URDF; velocity, acceleration and jerk limits are
-    here because URDFs carry no acceleration or jerk limits.
+    Joint position limits come from the URDF unless `position_limits_rad` overrides them;
+    velocity, acceleration and jerk limits are here because URDFs carry no acceleration or
+    jerk limits.
     """
 
     name: str = "panda"
@@ -28,6 +30,11 @@ class RobotConfig:
     """Planning joints, in the order of every configuration vector."""
     fixed_joint_positions: dict[str, float] = field(default_factory=dict)
     """Joints outside the planning group held at a constant position [rad or m]."""
+    position_limits_rad: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """Planning joint name -> (lower, upper) position limits replacing the URDF's [rad, or m for
+    prismatic joints]; joints not named keep their URDF limits. For models whose URDF limits
+    differ from the robot a dataset was made with (MotionBenchMaker's Panda allows q4 <= 0.0873,
+    pybullet_data's URDF says 0.0)."""
     max_velocity_rad_s: tuple[float, ...] = (2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61)
     max_acceleration_rad_s2: tuple[float, ...] = (15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0)
     max_jerk_rad_s3: tuple[float, ...] = (7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0)
@@ -58,3 +65,12 @@ class RobotConfig:
             for i, v in enumerate(values):
                 require(v > 0, f"robot.{label}[{i}] ({self.joint_names[i]}) must be > 0, got {v}")
         require(self.padding_m >= 0, f"robot.padding_m must be >= 0, got {self.padding_m}")
+        for name, limits in self.position_limits_rad.items():
+            require(name in self.joint_names,
+                    f"robot.position_limits_rad names '{name}', which is not a planning joint "
+                    f"(robot.joint_names: {list(self.joint_names)})")
+            require(len(limits) == 2, f"robot.position_limits_rad.{name} must be (lower, upper), got {limits}")
+            lower, upper = limits
+            require(math.isfinite(lower) and math.isfinite(upper),
+                    f"robot.position_limits_rad.{name} must be finite, got ({lower}, {upper})")
+            require(lower < upper, f"robot.position_limits_rad.{name}: lower {lower} must be < upper {upper}")

@@ -1,4 +1,4 @@
-"""`robonav` command line: serve one service, bring all up, or run the demo."""
+"""`robonav` command line: serve one service, bring all up, run the demo, or run a benchmark."""
 
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     serve.add_argument("service", choices=sorted(SERVICE_MODULES))
     sub.add_parser("up", help="run a Zenoh router and every service until Ctrl-C", add_help=False)
     sub.add_parser("demo", help="start everything, plan and execute the demo goals, print a JSON summary", add_help=False)
+    sub.add_parser("bench", help="benchmarks: `robonav bench plan --problems DIR` (MotionBenchMaker)", add_help=False)
     args, rest = parser.parse_known_args(argv)
     if args.command == "serve":
         import importlib
@@ -35,6 +36,10 @@ def main(argv: list[str] | None = None) -> int:
         from robonav.services.up import main as up_main
 
         return up_main(rest)
+    if args.command == "bench":
+        from robonav.services.bench import main as bench_main
+
+        return bench_main(rest)
     from robonav.services.demo import main as demo_main
 
     return demo_main(rest)

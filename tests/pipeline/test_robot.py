@@ -191,3 +191,21 @@ def test_load_mesh_ignores_line_records(tmp_path: Path) -> None:
                    "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
     vertices, triangles = load_mesh(obj)
     assert vertices.shape == (4, 3) and triangles.shape == (4, 3)
+
+
+def test_position_limit_override_replaces_urdf_limits() -> None:
+    cfg = RobotConfig(position_limits_rad={"panda_joint4": (-3.1416, 0.0873)})
+    robot = RobotModel.from_config(cfg)
+    assert robot.upper_limits_rad[3] == pytest.approx(0.0873) and robot.lower_limits_rad[3] == pytest.approx(-3.1416)
+    # Other joints keep the URDF's limits.
+    urdf = RobotModel.from_config(RobotConfig())
+    np.testing.assert_array_equal(np.delete(robot.upper_limits_rad, 3), np.delete(urdf.upper_limits_rad, 3))
+    q = robot.home_position_rad.copy()
+    q[3] = 0.05  # above the URDF's 0.0, below the override
+    assert robot.check_joint_limits(q) == [] and urdf.check_joint_limits(q) != []
+    with pytest.raises(ValueError, match=r"robot.position_limits_rad names 'panda_finger_joint1', which is not a planning joint"):
+        RobotConfig(position_limits_rad={"panda_finger_joint1": (0.0, 0.08)})
+    with pytest.raises(ValueError, match=r"robot.position_limits_rad.panda_joint4: lower 0.1 must be < upper 0.0"):
+        RobotConfig(position_limits_rad={"panda_joint4": (0.1, 0.0)})
+    with pytest.raises(ValueError, match=r"robot.position_limits_rad.panda_joint1 must be finite"):
+        RobotConfig(position_limits_rad={"panda_joint1": (float("-inf"), 1.0)})
