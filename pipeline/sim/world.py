@@ -332,6 +332,12 @@ def _create_obstacle(obj: SceneObject, rgba: tuple[float, float, float, float], 
     elif obj.type == "sphere":
         col = p.createCollisionShape(p.GEOM_SPHERE, radius=obj.radius_m, physicsClientId=cid)
         vis = p.createVisualShape(p.GEOM_SPHERE, radius=obj.radius_m, rgbaColor=rgba, physicsClientId=cid)
+    elif obj.type == "mesh":
+        assert obj.vertices_m is not None and obj.triangles is not None  # validated by SceneObject
+        vertices, indices = obj.vertices_m.tolist(), obj.triangles.ravel().tolist()
+        # A concave triangle mesh is only allowed on static bodies in bullet, which obstacles are.
+        col = p.createCollisionShape(p.GEOM_MESH, vertices=vertices, indices=indices, physicsClientId=cid)
+        vis = p.createVisualShape(p.GEOM_MESH, vertices=vertices, indices=indices, rgbaColor=rgba, physicsClientId=cid)
     else:
         # Collision shapes call the axial length `height`, visual shapes `length`. For a capsule
         # both are the cylindrical section between the cap centres (as in FCL).

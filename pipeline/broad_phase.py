@@ -1,0 +1,487 @@
+"""Conservative sphere broad phase for collision checking, compiled with numba (as VAMP does).
+
+Each collision link is covered by spheres (`pipeline/sphere_model.py`); a state is "suspect" when
+any sphere comes within contact of a scene primitive, an occupied voxel, a sphere of another
+link (self-collision pairs of `CollisionWorld`) or an attached sphere. Sphere-free implies
+FCL-free, so a cleared state needs no exact check; a suspect state must be asked of FCL.
+
+Why hand-written numba instead of FCL for this: on MBM `box` problem 1 (Panda, 7 obstacles,
+random states) `CollisionWorld._check` costs ~80 us per state (Pinocchio FK from Python, numpy
+culling, one python-fcl call per near pair), while one compiled `state_suspect` call (FK, 101
+spheres vs the obstacles, the self pairs) costs ~8 us, most of it numba's unboxing of the ~30
+arguments; a whole 1 rad edge at 0.01 rad (101 states) is one call of ~0.6 ms against ~14 ms of
+FCL for a free edge. FCL stays the exact check for suspects.
+
+Robot-vs-world spheres are grown so they contain the PADDED hulls FCL uses: `grow_hull` pushes
+vertices out by up to ~1.8x the padding, so each shape's world radii grow by the Hausdorff
+distance from its grown hull to its hull (measured with FCL at construction). Self-collision
+uses the unpadded spheres, as `CollisionWorld` does.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import fcl
+import numba as nb
+import numpy as np
+from scipy.ndimage import distance_transform_edt
+
+from robonav.pipeline.kinematics_batch import LinkKinematics, forward_links
+from robonav.pipeline.link_geometry import grow_hull
+from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.sphere_model import RobotSphereModel, robot_sphere_model
+from robonav.pipeline.transforms import FloatArray
+
+BOX, SPHERE, CYLINDER, CAPSULE = 0, 1, 2, 3
+_CONTACT_EPS_M = 1e-9
+"""Touching counts as contact (FCL reports touching shapes as colliding)."""
+_MAX_GRID_CELLS = 60_000_000
+
+
+class SphereBroadPhase:
+    """Sphere model of one robot plus the world it is checked against, all precompiled arrays.
+
+    Not thread-safe (it reuses scratch buffers).
+    """
+
+    def __init__(self, robot: RobotModel, *, padding_m: float = 0.0,
+                 self_pairs: Sequence[tuple[str, str]] | None = None,
+                 sphere_model: RobotSphereModel | None = None) -> None:
+        """Build spheres, kinematics and the self-collision pair list.
+
+        Args:
+            robot: Kinematics and link geometry.
+            padding_m: Robot-vs-world padding of the FCL hulls this must stay conservative to [m].
+            self_pairs: Link pairs checked for self-collision (`CollisionWorld.self_collision_pairs`);
+                None derives them the same way (all pairs minus adjacent and allowed ones).
+            sphere_model: Spheres to use; None builds (or reuses the cached) default cover.
+        """
+        if not (math.isfinite(padding_m) and padding_m >= 0):
+            raise ValueError(f"padding_m must be finite and >= 0, got {padding_m}")
+        self._robot = robot
+        self._kin = LinkKinematics.from_robot(robot)
+        self._kin_args = self._kin.arrays()
+        model = sphere_model if sphere_model is not None else robot_sphere_model(robot)
+        self._model = model
+        links = robot.collision_link_names
+        shapes = [s for link in links for s in robot.link_collision_shapes[link]]
+        growth = np.array([_padded_growth_m(s.hull_vertices, s.hull_triangles, padding_m) for s in shapes])
+        # Fresh writable C arrays: numba compiles one specialisation per array layout/writability,
+        # and a lazy compile triggered from an OMPL worker thread can deadlock on the GIL.
+        self._centers_link = np.array(model.centers_link_m, dtype=np.float64, order="C")
+        self._radii_self = np.array(model.radii_m, dtype=np.float64)
+        self._radii_world = self._radii_self + growth[model.shape_index]
+        self._sphere_link = np.array(model.link_index, dtype=np.int64)
+        n_links = len(links)
+        starts = np.searchsorted(self._sphere_link, np.arange(n_links + 1))
+        self._link_start = starts.astype(np.int64)
+        # One bounding sphere per link (first level of the two-level check).
+        bound_center = np.zeros((n_links, 3))
+        bound_self = np.zeros(n_links)
+        bound_world = np.zeros(n_links)
+        for li in range(n_links):
+            c = self._centers_link[starts[li]:starts[li + 1]]
+            mid = 0.5 * (c.min(axis=0) + c.max(axis=0)) if len(c) else np.zeros(3)
+            bound_center[li] = mid
+            dist = np.linalg.norm(c - mid, axis=1)
+            bound_self[li] = float(np.max(dist + self._radii_self[starts[li]:starts[li + 1]], initial=0.0))
+            bound_world[li] = float(np.max(dist + self._radii_world[starts[li]:starts[li + 1]], initial=0.0))
+        self._bound_center_link, self._bound_self, self._bound_world = bound_center, bound_self, bound_world
+        if self_pairs is None:
+            ignored = set(robot.adjacent_link_pairs) | {tuple(sorted(p)) for p in robot.config.allowed_collision_pairs}
+            self_pairs = [(a, b) for i, a in enumerate(links) for b in links[i + 1:] if tuple(sorted((a, b))) not in ignored]
+        self._self_pairs = np.array([(links.index(a), links.index(b)) for a, b in self_pairs],
+                                    dtype=np.int64).reshape(-1, 2)
+        self._padding_m = float(padding_m)
+        # Scratch buffers (no allocation per call).
+        self._scratch = self._kin.new_buffers()
+        self._sphere_world = np.zeros((self._centers_link.shape[0], 3))
+        self._bound_world_center = np.zeros((n_links, 3))
+        self._step_buffer = np.zeros(1, dtype=np.int64)
+        self._queue = np.zeros((1, 2), dtype=np.int64)
+        self.clear_objects()
+        self.clear_occupancy()
+        self._attached: dict[str, tuple[int, FloatArray, FloatArray, tuple[str, ...]]] = {}
+        self._rebuild_attached()
+        # Compile (or load from numba's cache) now, on the constructing thread.
+        home = robot.home_position_rad
+        self.state_suspect(home)
+        self.edge_suspects(home, home, 1.0)
+
+    # --- world ---------------------------------------------------------------------------------
+
+    @property
+    def sphere_model(self) -> RobotSphereModel:
+        return self._model
+
+    @property
+    def sphere_count(self) -> int:
+        return int(self._radii_self.shape[0])
+
+    def set_objects(self, objects: Sequence[SceneObject]) -> None:
+        """Replace the obstacles (world frame). A mesh is checked as its local bounding box, which contains it."""
+        kinds, rotations, translations, params, bounds = [], [], [], [], []
+        for obj in objects:
+            pose = obj.world_from_object
+            rotation, translation = pose[:3, :3], pose[:3, 3]
+            if obj.type == "box":
+                kind, param = BOX, 0.5 * np.array(obj.size_m, dtype=np.float64)
+            elif obj.type == "sphere":
+                kind, param = SPHERE, np.array([obj.radius_m, 0.0, 0.0])
+            elif obj.type == "cylinder":
+                kind, param = CYLINDER, np.array([obj.radius_m, 0.5 * obj.length_m, 0.0])
+            elif obj.type == "capsule":
+                kind, param = CAPSULE, np.array([obj.radius_m, 0.5 * obj.length_m, 0.0])
+            else:
+                # Any other shape (meshes) as its local axis-aligned box: conservative.
+                center, half = obj.local_bounds_m
+                kind, param = BOX, np.maximum(np.asarray(half, dtype=np.float64), 1e-9)
+                translation = translation + rotation @ np.asarray(center, dtype=np.float64)
+            kinds.append(kind)
+            rotations.append(rotation)
+            translations.append(translation)
+            params.append(param)
+            extent = float(np.linalg.norm(param)) if kind == BOX else float(param[0] + param[1])
+            bounds.append(extent)
+        self._obj_kind = np.array(kinds, dtype=np.int64)
+        self._obj_rotation = np.array(rotations, dtype=np.float64).reshape(-1, 3, 3)
+        self._obj_translation = np.array(translations, dtype=np.float64).reshape(-1, 3)
+        self._obj_param = np.array(params, dtype=np.float64).reshape(-1, 3)
+        self._obj_bound = np.array(bounds, dtype=np.float64)
+        self._refresh_args()
+
+    def clear_objects(self) -> None:
+        self.set_objects([])
+
+    def set_occupied_voxels(self, centers_m: FloatArray, voxel_size_m: float) -> None:
+        """Replace the occupancy with cubes of side `voxel_size_m` at `centers_m` (N, 3), world frame [m].
+
+        Builds a Euclidean distance field on a grid aligned with the voxels, covering them plus a
+        margin. A lookup at point p in cell c returns edt(c) - |p - centre(c)| - half voxel
+        diagonal, a lower bound on the distance from p to any occupied cube; outside the grid the
+        distance to the occupied cubes' bounding box is used.
+        """
+        centers = np.asarray(centers_m, dtype=np.float64).reshape(-1, 3)
+        if not (math.isfinite(voxel_size_m) and voxel_size_m > 0):
+            raise ValueError(f"voxel_size_m must be finite and > 0, got {voxel_size_m}")
+        if centers.shape[0] == 0:
+            self.clear_occupancy()
+            return
+        margin_cells = int(math.ceil(0.25 / voxel_size_m)) + 2
+        low = centers.min(axis=0)
+        keys = np.round((centers - low) / voxel_size_m).astype(np.int64) + margin_cells
+        dims = keys.max(axis=0) + margin_cells + 1
+        if int(np.prod(dims)) > _MAX_GRID_CELLS:
+            raise ValueError(f"occupancy spans {dims.tolist()} voxels, more than {_MAX_GRID_CELLS} cells")
+        occupied = np.zeros(tuple(dims), dtype=bool)
+        occupied[keys[:, 0], keys[:, 1], keys[:, 2]] = True
+        half_diagonal = 0.5 * math.sqrt(3.0) * voxel_size_m
+        field = distance_transform_edt(~occupied) * voxel_size_m - half_diagonal
+        self._grid = np.ascontiguousarray(field, dtype=np.float64)
+        self._grid_origin = low - margin_cells * voxel_size_m
+        self._grid_voxel = float(voxel_size_m)
+        self._grid_box = np.array([low - 0.5 * voxel_size_m, centers.max(axis=0) + 0.5 * voxel_size_m])
+        self._has_grid = True
+        self._refresh_args()
+
+    def clear_occupancy(self) -> None:
+        self._grid = np.zeros((1, 1, 1))
+        self._grid_origin = np.zeros(3)
+        self._grid_voxel = 1.0
+        self._grid_box = np.zeros((2, 3))
+        self._has_grid = False
+        self._refresh_args()
+
+    def set_attached_spheres(self, name: str, link: str, centers_link_m: FloatArray, radii_m: FloatArray,
+                             touch_links: Sequence[str] = ()) -> None:
+        """Add (or replace) spheres rigid on `link`, e.g. the cover of a grasped object.
+
+        They are checked against the world (padded like the robot) and against robot links
+        other than `link` and `touch_links`.
+
+        Args:
+            name: Key for `remove_attached`.
+            link: A collision link name.
+            centers_link_m: (A, 3) centres in the LINK frame [m].
+            radii_m: (A,) radii [m].
+            touch_links: Links the object may touch (ignored for it).
+        """
+        links = self._robot.collision_link_names
+        for label in (link, *touch_links):
+            if label not in links:
+                raise ValueError(f"'{label}' is not a collision link ({list(links)})")
+        centers = np.asarray(centers_link_m, dtype=np.float64).reshape(-1, 3)
+        radii = np.asarray(radii_m, dtype=np.float64).reshape(-1)
+        if radii.shape[0] != centers.shape[0] or np.any(radii < 0):
+            raise ValueError(f"need one radius >= 0 per centre, got {radii.shape[0]} radii for {centers.shape[0]} centres")
+        self._attached[name] = (links.index(link), centers, radii, tuple(touch_links))
+        self._rebuild_attached()
+
+    def remove_attached(self, name: str) -> None:
+        """Forget attached spheres added under `name` (no-op when absent)."""
+        self._attached.pop(name, None)
+        self._rebuild_attached()
+
+    def _rebuild_attached(self) -> None:
+        links = self._robot.collision_link_names
+        centers, radii, owner, rows = [], [], [], []
+        for link_index, c, r, touch in self._attached.values():
+            skip = np.zeros(len(links), dtype=np.bool_)
+            skip[link_index] = True
+            for t in touch:
+                skip[links.index(t)] = True
+            centers.append(c)
+            radii.append(r)
+            owner.append(np.full(len(r), link_index, dtype=np.int64))
+            rows.append(np.repeat(skip[None], len(r), axis=0))
+        self._att_center_link = np.vstack(centers).reshape(-1, 3) if centers else np.zeros((0, 3))
+        self._att_radius = np.concatenate(radii) if radii else np.zeros(0)
+        self._att_radius_world = self._att_radius + self._padding_m
+        self._att_link = np.concatenate(owner) if owner else np.zeros(0, dtype=np.int64)
+        self._att_skip = np.vstack(rows) if rows else np.zeros((0, len(links)), dtype=np.bool_)
+        self._att_world = np.zeros((self._att_radius.shape[0], 3))
+        self._refresh_args()
+
+    # --- queries -------------------------------------------------------------------------------
+
+    def _refresh_args(self) -> None:
+        # Built once per world change: numba unboxes ~30 arguments per call, and rebuilding the
+        # tuple each call would add Python work to the hot path.
+        if not hasattr(self, "_att_world") or not hasattr(self, "_has_grid") or not hasattr(self, "_obj_kind"):
+            return
+        self._args = (self._kin_args, *self._scratch, self._centers_link, self._radii_self, self._radii_world,
+                self._link_start, self._bound_center_link, self._bound_self, self._bound_world, self._self_pairs,
+                self._sphere_world, self._bound_world_center, self._obj_kind, self._obj_rotation,
+                self._obj_translation, self._obj_param, self._obj_bound, self._has_grid, self._grid,
+                self._grid_origin, self._grid_voxel, self._grid_box, self._att_center_link, self._att_radius,
+                self._att_radius_world, self._att_link, self._att_skip, self._att_world)
+
+    def state_suspect(self, q: FloatArray) -> bool:
+        """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free."""
+        return bool(_state_suspect(np.array(q, dtype=np.float64), *self._args))
+
+    def edge_suspects(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float, *,
+                      first_only: bool = False) -> tuple[np.ndarray, int]:
+        """Suspect states of the straight segment, in `CollisionWorld.motion_valid` order.
+
+        The segment has `steps` = max(1, ceil(max|b - a| / resolution_rad)) intervals; state k is
+        a + (b - a) * (k / steps). They are visited as `motion_valid` does: k = steps (q_b),
+        then the interior in bisection order, then k = 0 (q_a).
+
+        Returns:
+            (M,) int64 step indices k of the suspect states in visiting order (at most one when
+            `first_only`), and `steps`.
+        """
+        a = np.array(q_a, dtype=np.float64)
+        b = np.array(q_b, dtype=np.float64)
+        if not (math.isfinite(resolution_rad) and resolution_rad > 0):
+            raise ValueError(f"resolution_rad must be finite and > 0, got {resolution_rad}")
+        steps = max(1, math.ceil(float(np.max(np.abs(b - a))) / resolution_rad - 1e-9))
+        if self._step_buffer.shape[0] < 2 * steps + 2:
+            # order (steps + 1 entries) and the FIFO of spans (< 2 * steps + 1 entries) share `_queue`.
+            self._step_buffer = np.zeros(2 * steps + 2, dtype=np.int64)
+            self._queue = np.zeros((2 * steps + 2, 2), dtype=np.int64)
+        count = _edge_suspects(a, b, steps, first_only, self._step_buffer, self._queue, *self._args)
+        return self._step_buffer[:count].copy(), steps
+
+
+def _padded_growth_m(vertices: FloatArray, triangles: np.ndarray, padding_m: float) -> float:
+    """Hausdorff distance from `grow_hull(hull, padding)` to the hull [m] (>= padding_m), via FCL."""
+    if padding_m <= 0:
+        return 0.0
+    grown, _ = grow_hull(vertices, triangles, padding_m)
+    faces = np.hstack([np.full((len(triangles), 1), 3, dtype=np.int64), triangles]).ravel()
+    hull = fcl.CollisionObject(fcl.Convex(np.ascontiguousarray(vertices), len(triangles), faces), fcl.Transform())
+    request = fcl.DistanceRequest()
+    worst = padding_m
+    point = fcl.CollisionObject(fcl.Sphere(1e-9), fcl.Transform())
+    for v in grown:
+        point.setTranslation(v)
+        worst = max(worst, float(fcl.distance(point, hull, request, fcl.DistanceResult())))
+    return worst + 1e-6
+
+
+# --- compiled core ---------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, inline="always")
+def _primitive_distance(px: float, py: float, pz: float, kind: int, p0: float, p1: float, p2: float) -> float:
+    """Signed distance from a point in the object's frame to a box/sphere/cylinder/capsule [m]."""
+    if kind == BOX:
+        qx, qy, qz = abs(px) - p0, abs(py) - p1, abs(pz) - p2
+        ox, oy, oz = max(qx, 0.0), max(qy, 0.0), max(qz, 0.0)
+        return math.sqrt(ox * ox + oy * oy + oz * oz) + min(max(qx, max(qy, qz)), 0.0)
+    if kind == SPHERE:
+        return math.sqrt(px * px + py * py + pz * pz) - p0
+    if kind == CYLINDER:
+        radial = math.sqrt(px * px + py * py) - p0
+        axial = abs(pz) - p1
+        orad, oax = max(radial, 0.0), max(axial, 0.0)
+        return math.sqrt(orad * orad + oax * oax) + min(max(radial, axial), 0.0)
+    z = min(max(pz, -p1), p1)
+    dz = pz - z
+    return math.sqrt(px * px + py * py + dz * dz) - p0
+
+
+@nb.njit(cache=True, inline="always")
+def _object_distance(x: float, y: float, z: float, k: int, kind, rotation, translation, param) -> float:
+    dx, dy, dz = x - translation[k, 0], y - translation[k, 1], z - translation[k, 2]
+    px = rotation[k, 0, 0] * dx + rotation[k, 1, 0] * dy + rotation[k, 2, 0] * dz
+    py = rotation[k, 0, 1] * dx + rotation[k, 1, 1] * dy + rotation[k, 2, 1] * dz
+    pz = rotation[k, 0, 2] * dx + rotation[k, 1, 2] * dy + rotation[k, 2, 2] * dz
+    return _primitive_distance(px, py, pz, kind[k], param[k, 0], param[k, 1], param[k, 2])
+
+
+@nb.njit(cache=True, inline="always")
+def _voxel_distance(x: float, y: float, z: float, grid, origin, voxel: float, box) -> float:
+    """Lower bound on the distance from a point to the occupied cubes [m]."""
+    fx, fy, fz = (x - origin[0]) / voxel, (y - origin[1]) / voxel, (z - origin[2]) / voxel
+    i, j, k = int(math.floor(fx + 0.5)), int(math.floor(fy + 0.5)), int(math.floor(fz + 0.5))
+    if 0 <= i < grid.shape[0] and 0 <= j < grid.shape[1] and 0 <= k < grid.shape[2]:
+        ex, ey, ez = (fx - i) * voxel, (fy - j) * voxel, (fz - k) * voxel
+        return grid[i, j, k] - math.sqrt(ex * ex + ey * ey + ez * ez)
+    ox = max(box[0, 0] - x, 0.0, x - box[1, 0])
+    oy = max(box[0, 1] - y, 0.0, y - box[1, 1])
+    oz = max(box[0, 2] - z, 0.0, z - box[1, 2])
+    return math.sqrt(ox * ox + oy * oy + oz * oz)
+
+
+@nb.njit(cache=True)
+def _state_suspect(q, kin, rot_scratch, trans_scratch, link_rotation, link_translation, centers_link, radii_self,
+                   radii_world, link_start, bound_center_link, bound_self, bound_world, self_pairs, sphere_world,
+                   bound_world_center, obj_kind, obj_rotation, obj_translation, obj_param, obj_bound, has_grid, grid,
+                   grid_origin, grid_voxel, grid_box, att_center_link, att_radius, att_radius_world, att_link,
+                   att_skip, att_world) -> bool:  # pragma: no cover (compiled)
+    forward_links(q, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8], kin[9], kin[10],
+                  kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
+    n_links = link_start.shape[0] - 1
+    for li in range(n_links):
+        for r in range(3):
+            bound_world_center[li, r] = (link_translation[li, r] + link_rotation[li, r, 0] * bound_center_link[li, 0]
+                                         + link_rotation[li, r, 1] * bound_center_link[li, 1]
+                                         + link_rotation[li, r, 2] * bound_center_link[li, 2])
+        for s in range(link_start[li], link_start[li + 1]):
+            for r in range(3):
+                sphere_world[s, r] = (link_translation[li, r] + link_rotation[li, r, 0] * centers_link[s, 0]
+                                      + link_rotation[li, r, 1] * centers_link[s, 1]
+                                      + link_rotation[li, r, 2] * centers_link[s, 2])
+    n_objects = obj_kind.shape[0]
+    # Robot vs primitives: link bounding sphere first, then the link's spheres.
+    for li in range(n_links):
+        bx, by, bz = bound_world_center[li, 0], bound_world_center[li, 1], bound_world_center[li, 2]
+        for k in range(n_objects):
+            dx, dy, dz = bx - obj_translation[k, 0], by - obj_translation[k, 1], bz - obj_translation[k, 2]
+            reach = bound_world[li] + obj_bound[k]
+            if dx * dx + dy * dy + dz * dz > reach * reach:
+                continue
+            if _object_distance(bx, by, bz, k, obj_kind, obj_rotation, obj_translation, obj_param) > bound_world[li]:
+                continue
+            for s in range(link_start[li], link_start[li + 1]):
+                d = _object_distance(sphere_world[s, 0], sphere_world[s, 1], sphere_world[s, 2], k, obj_kind,
+                                     obj_rotation, obj_translation, obj_param)
+                if d <= radii_world[s] + _CONTACT_EPS_M:
+                    return True
+        if has_grid:
+            if _voxel_distance(bx, by, bz, grid, grid_origin, grid_voxel, grid_box) <= bound_world[li]:
+                for s in range(link_start[li], link_start[li + 1]):
+                    d = _voxel_distance(sphere_world[s, 0], sphere_world[s, 1], sphere_world[s, 2], grid, grid_origin,
+                                        grid_voxel, grid_box)
+                    if d <= radii_world[s] + _CONTACT_EPS_M:
+                        return True
+    # Self-collision, unpadded.
+    for p in range(self_pairs.shape[0]):
+        la, lb = self_pairs[p, 0], self_pairs[p, 1]
+        dx = bound_world_center[la, 0] - bound_world_center[lb, 0]
+        dy = bound_world_center[la, 1] - bound_world_center[lb, 1]
+        dz = bound_world_center[la, 2] - bound_world_center[lb, 2]
+        reach = bound_self[la] + bound_self[lb] + _CONTACT_EPS_M
+        if dx * dx + dy * dy + dz * dz > reach * reach:
+            continue
+        for sa in range(link_start[la], link_start[la + 1]):
+            for sb in range(link_start[lb], link_start[lb + 1]):
+                dx = sphere_world[sa, 0] - sphere_world[sb, 0]
+                dy = sphere_world[sa, 1] - sphere_world[sb, 1]
+                dz = sphere_world[sa, 2] - sphere_world[sb, 2]
+                reach = radii_self[sa] + radii_self[sb] + _CONTACT_EPS_M
+                if dx * dx + dy * dy + dz * dz <= reach * reach:
+                    return True
+    # Attached spheres: against the world (padded) and the robot links they may not touch.
+    for a in range(att_radius.shape[0]):
+        li = att_link[a]
+        for r in range(3):
+            att_world[a, r] = (link_translation[li, r] + link_rotation[li, r, 0] * att_center_link[a, 0]
+                               + link_rotation[li, r, 1] * att_center_link[a, 1]
+                               + link_rotation[li, r, 2] * att_center_link[a, 2])
+        x, y, z = att_world[a, 0], att_world[a, 1], att_world[a, 2]
+        for k in range(n_objects):
+            if _object_distance(x, y, z, k, obj_kind, obj_rotation, obj_translation, obj_param) <= (
+                    att_radius_world[a] + _CONTACT_EPS_M):
+                return True
+        if has_grid and _voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= (
+                att_radius_world[a] + _CONTACT_EPS_M):
+            return True
+        for lo in range(n_links):
+            if att_skip[a, lo]:
+                continue
+            dx, dy, dz = x - bound_world_center[lo, 0], y - bound_world_center[lo, 1], z - bound_world_center[lo, 2]
+            reach = att_radius[a] + bound_self[lo] + _CONTACT_EPS_M
+            if dx * dx + dy * dy + dz * dz > reach * reach:
+                continue
+            for s in range(link_start[lo], link_start[lo + 1]):
+                dx, dy, dz = x - sphere_world[s, 0], y - sphere_world[s, 1], z - sphere_world[s, 2]
+                reach = att_radius[a] + radii_self[s] + _CONTACT_EPS_M
+                if dx * dx + dy * dy + dz * dz <= reach * reach:
+                    return True
+    return False
+
+
+@nb.njit(cache=True)
+def _edge_suspects(a, b, steps, first_only, out, queue, kin, rot_scratch, trans_scratch, link_rotation,
+                   link_translation, centers_link, radii_self, radii_world, link_start, bound_center_link, bound_self,
+                   bound_world, self_pairs, sphere_world, bound_world_center, obj_kind, obj_rotation, obj_translation,
+                   obj_param, obj_bound, has_grid, grid, grid_origin, grid_voxel, grid_box, att_center_link,
+                   att_radius, att_radius_world, att_link, att_skip, att_world) -> int:  # pragma: no cover
+    dof = a.shape[0]
+    q = np.empty(dof)
+    diff = b - a
+    # Visiting order of CollisionWorld.motion_valid: b, interior in bisection (breadth-first) order, a.
+    order = queue[:, 0]
+    spans = queue[:, 1]
+    n_order = 0
+    order[n_order] = steps
+    n_order += 1
+    # FIFO of (lo, hi) spans stored in `out` pairs is avoided: spans live in queue[:, 1] as lo * (steps + 1) + hi.
+    head, tail = 0, 1
+    spans[0] = steps  # lo = 0, hi = steps
+    while head < tail:
+        lo, hi = spans[head] // (steps + 1), spans[head] % (steps + 1)
+        head += 1
+        if hi - lo < 2:
+            continue
+        mid = (lo + hi) // 2
+        order[n_order] = mid
+        n_order += 1
+        spans[tail] = lo * (steps + 1) + mid
+        spans[tail + 1] = mid * (steps + 1) + hi
+        tail += 2
+    order[n_order] = 0
+    n_order += 1
+    count = 0
+    for position in range(n_order):
+        k = order[position]
+        t = k / steps
+        for j in range(dof):
+            q[j] = a[j] + diff[j] * t
+        if _state_suspect(q, kin, rot_scratch, trans_scratch, link_rotation, link_translation, centers_link,
+                          radii_self, radii_world, link_start, bound_center_link, bound_self, bound_world, self_pairs,
+                          sphere_world, bound_world_center, obj_kind, obj_rotation, obj_translation, obj_param,
+                          obj_bound, has_grid, grid, grid_origin, grid_voxel, grid_box, att_center_link, att_radius,
+                          att_radius_world, att_link, att_skip, att_world):
+            out[count] = k
+            count += 1
+            if first_only:
+                return count
+    return count

@@ -1,0 +1,284 @@
+"""Forward kinematics of the collision links compiled with numba, derived from the Pinocchio model.
+
+Pinocchio stays the source of truth: `LinkKinematics.from_robot` reads the joint placements,
+joint types and axes, the parent structure and the collision-link frame placements out of the
+reduced model `RobotModel` already built, so both always describe the same robot. The compiled
+form exists because the sphere broad phase (`pipeline/broad_phase.py`) needs link poses inside
+one numba call per state or edge: a Python round trip to Pinocchio (`link_pose_stack`) costs
+about 10 us per state, more than the whole compiled sphere check.
+
+Poses are stored as a rotation (3, 3) and a translation (3,) per link, both world_from_link, so
+compiled callers can place link-frame points without building 4x4 matrices.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+import numpy.typing as npt
+import pinocchio as pin
+
+from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.transforms import FloatArray
+
+IntArray = npt.NDArray[np.int64]
+
+REVOLUTE = 0
+PRISMATIC = 1
+
+_AXIS_OF_SHORTNAME: dict[str, tuple[int, tuple[float, float, float]]] = {
+    "JointModelRX": (REVOLUTE, (1.0, 0.0, 0.0)),
+    "JointModelRY": (REVOLUTE, (0.0, 1.0, 0.0)),
+    "JointModelRZ": (REVOLUTE, (0.0, 0.0, 1.0)),
+    "JointModelPX": (PRISMATIC, (1.0, 0.0, 0.0)),
+    "JointModelPY": (PRISMATIC, (0.0, 1.0, 0.0)),
+    "JointModelPZ": (PRISMATIC, (0.0, 0.0, 1.0)),
+}
+
+
+@dataclass(frozen=True)
+class LinkKinematics:
+    """The kinematic tree of a `RobotModel` as flat arrays for compiled forward kinematics.
+
+    Joint 0 is Pinocchio's universe (identity pose); joints are ordered so a parent comes before
+    its children (Pinocchio guarantees this). All arrays are float64/int64, C-contiguous.
+
+    Attributes:
+        parent: (J,) parent joint index of each joint; parent[0] = 0.
+        parent_from_joint_rotation: (J, 3, 3) rotation of the joint placement at q = 0.
+        parent_from_joint_translation_m: (J, 3) translation of the joint placement [m].
+        joint_type: (J,) REVOLUTE or PRISMATIC (joint 0: unused).
+        joint_axis: (J, 3) unit axis in the joint frame.
+        q_slot: (J,) index of the joint's value in a configuration vector q (dof,) in
+            `RobotModel.joint_names` order; -1 for joint 0.
+        link_joint: (L,) joint each collision link hangs from, `collision_link_names` order.
+        joint_from_link_rotation: (L, 3, 3) frame placement of each collision link.
+        joint_from_link_translation_m: (L, 3) [m].
+        base_joint: Joint the base link (world frame) hangs from.
+        joint_from_base_rotation: (3, 3) frame placement of the base link.
+        joint_from_base_translation_m: (3,) [m].
+
+    world_from_root is the inverse of the base link's pose and is recomputed per state, so a
+    base link below a planning joint works too (it costs one 3x3 product).
+    """
+
+    parent: IntArray
+    parent_from_joint_rotation: FloatArray
+    parent_from_joint_translation_m: FloatArray
+    joint_type: IntArray
+    joint_axis: FloatArray
+    q_slot: IntArray
+    link_joint: IntArray
+    joint_from_link_rotation: FloatArray
+    joint_from_link_translation_m: FloatArray
+    base_joint: int
+    joint_from_base_rotation: FloatArray
+    joint_from_base_translation_m: FloatArray
+
+    @classmethod
+    def from_robot(cls, robot: RobotModel) -> LinkKinematics:
+        """Extract the arrays from the robot's reduced Pinocchio model.
+
+        Raises:
+            ValueError: a joint of the reduced model is not a 1-DoF revolute or prismatic joint.
+        """
+        model: pin.Model = robot._model  # noqa: SLF001 (the model is the source of truth)
+        q_index = np.asarray(robot._q_index, dtype=np.int64)  # noqa: SLF001
+        slot_of_model_q = {int(model_q): config_slot for config_slot, model_q in enumerate(q_index)}
+        n_joints = model.njoints
+        parent = np.zeros(n_joints, dtype=np.int64)
+        rotation = np.tile(np.eye(3), (n_joints, 1, 1))
+        translation = np.zeros((n_joints, 3))
+        joint_type = np.zeros(n_joints, dtype=np.int64)
+        axis = np.zeros((n_joints, 3))
+        q_slot = np.full(n_joints, -1, dtype=np.int64)
+        for j in range(1, n_joints):
+            joint = model.joints[j]
+            name = joint.shortname()
+            if name in _AXIS_OF_SHORTNAME:
+                kind, unit = _AXIS_OF_SHORTNAME[name]
+                axis[j] = unit
+            elif name in ("JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned"):
+                kind = REVOLUTE if "Revolute" in name else PRISMATIC
+                axis[j] = np.asarray(joint.extract().axis, dtype=np.float64)
+                axis[j] /= np.linalg.norm(axis[j])
+            else:
+                raise ValueError(f"joint '{model.names[j]}' is a {name}; compiled kinematics supports only "
+                                 "1-DoF revolute and prismatic joints")
+            if joint.idx_q not in slot_of_model_q:
+                raise ValueError(f"joint '{model.names[j]}' is not a planning joint of the reduced model")
+            joint_type[j] = kind
+            q_slot[j] = slot_of_model_q[joint.idx_q]
+            parent[j] = model.parents[j]
+            placement = model.jointPlacements[j]
+            rotation[j] = placement.rotation
+            translation[j] = placement.translation
+        link_ids = list(robot._frame_id_list)  # noqa: SLF001 (collision_link_names order)
+        frames = [model.frames[fid] for fid in link_ids]
+        base = model.frames[robot._base_id]  # noqa: SLF001
+        return cls(
+            parent=parent,
+            parent_from_joint_rotation=np.ascontiguousarray(rotation),
+            parent_from_joint_translation_m=translation,
+            joint_type=joint_type,
+            joint_axis=axis,
+            q_slot=q_slot,
+            link_joint=np.array([f.parentJoint for f in frames], dtype=np.int64),
+            joint_from_link_rotation=np.array([f.placement.rotation for f in frames]).reshape(-1, 3, 3),
+            joint_from_link_translation_m=np.array([f.placement.translation for f in frames]).reshape(-1, 3),
+            base_joint=int(base.parentJoint),
+            joint_from_base_rotation=np.array(base.placement.rotation, dtype=np.float64),
+            joint_from_base_translation_m=np.array(base.placement.translation, dtype=np.float64),
+        )
+
+    @property
+    def link_count(self) -> int:
+        return int(self.link_joint.shape[0])
+
+    @property
+    def dof(self) -> int:
+        return int(np.max(self.q_slot)) + 1
+
+    def new_buffers(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Scratch (J + 2, 3, 3), (J + 2, 3) and output (L, 3, 3), (L, 3) arrays for `forward_links`."""
+        n_joints, n_links = self.parent.shape[0], self.link_count
+        return (np.zeros((n_joints + 2, 3, 3)), np.zeros((n_joints + 2, 3)), np.zeros((n_links, 3, 3)),
+                np.zeros((n_links, 3)))
+
+    def link_pose_stack(self, q: FloatArray) -> FloatArray:
+        """world_from_link (L, 4, 4) of the collision links at `q` (dof,); the compiled twin of
+        `RobotModel.link_pose_stack` (for tests and callers outside compiled code)."""
+        return self.link_poses_batch(np.asarray(q, dtype=np.float64).reshape(1, -1))[0]
+
+    def link_poses_batch(self, qs: FloatArray) -> FloatArray:
+        """world_from_link (M, L, 4, 4) of the collision links for each row of `qs` (M, dof)."""
+        arr = np.ascontiguousarray(qs, dtype=np.float64)
+        dof = self.dof
+        if arr.ndim != 2 or arr.shape[1] != dof:
+            raise ValueError(f"qs must have shape (M, {dof}), got shape {arr.shape}")
+        out = np.zeros((arr.shape[0], self.link_count, 4, 4))
+        _poses_batch(arr, *self.arrays(), out)
+        return out
+
+    def arrays(self) -> tuple:
+        """The arguments `forward_links` takes after `q`, in order (for compiled callers)."""
+        return (self.parent, self.parent_from_joint_rotation, self.parent_from_joint_translation_m,
+                self.joint_type, self.joint_axis, self.q_slot, self.link_joint, self.joint_from_link_rotation,
+                self.joint_from_link_translation_m, self.base_joint, self.joint_from_base_rotation,
+                self.joint_from_base_translation_m)
+
+
+@nb.njit(cache=True, inline="always")
+def _compose(a_rotation: FloatArray, a_translation: FloatArray, b_rotation: FloatArray, b_translation: FloatArray,
+             out_rotation: FloatArray, out_translation: FloatArray) -> None:
+    """out = a @ b for rigid transforms given as (3, 3) rotation and (3,) translation; out may not alias a or b."""
+    for r in range(3):
+        for c in range(3):
+            out_rotation[r, c] = a_rotation[r, 0] * b_rotation[0, c] + a_rotation[r, 1] * b_rotation[1, c] + a_rotation[r, 2] * b_rotation[2, c]
+        out_translation[r] = (a_translation[r] + a_rotation[r, 0] * b_translation[0] + a_rotation[r, 1] * b_translation[1]
+                              + a_rotation[r, 2] * b_translation[2])
+
+
+@nb.njit(cache=True, nogil=True)
+def forward_links(
+    q: FloatArray,
+    parent: IntArray,
+    parent_from_joint_rotation: FloatArray,
+    parent_from_joint_translation_m: FloatArray,
+    joint_type: IntArray,
+    joint_axis: FloatArray,
+    q_slot: IntArray,
+    link_joint: IntArray,
+    joint_from_link_rotation: FloatArray,
+    joint_from_link_translation_m: FloatArray,
+    base_joint: int,
+    joint_from_base_rotation: FloatArray,
+    joint_from_base_translation_m: FloatArray,
+    root_from_joint_rotation: FloatArray,
+    root_from_joint_translation_m: FloatArray,
+    world_from_link_rotation: FloatArray,
+    world_from_link_translation_m: FloatArray,
+) -> None:
+    """Compiled forward kinematics: world_from_link of every collision link at `q`.
+
+    Args:
+        q: (dof,) configuration in `RobotModel.joint_names` order [rad or m].
+        parent ... joint_from_base_translation_m: `LinkKinematics.arrays()`.
+        root_from_joint_rotation: (J + 2, 3, 3) scratch, overwritten (two spare rows for temporaries).
+        root_from_joint_translation_m: (J + 2, 3) scratch, overwritten.
+        world_from_link_rotation: (L, 3, 3) output.
+        world_from_link_translation_m: (L, 3) output [m].
+    """
+    n_joints = parent.shape[0]
+    # Two spare scratch rows hold temporaries, so a call allocates nothing.
+    tmp, world = n_joints, n_joints + 1
+    rot, trans = root_from_joint_rotation, root_from_joint_translation_m
+    for r in range(3):
+        for c in range(3):
+            rot[0, r, c] = 1.0 if r == c else 0.0
+        trans[0, r] = 0.0
+    for j in range(1, n_joints):
+        value = q[q_slot[j]]
+        ax, ay, az = joint_axis[j, 0], joint_axis[j, 1], joint_axis[j, 2]
+        # tmp = joint motion: a rotation about, or a translation along, the joint axis.
+        if joint_type[j] == REVOLUTE:
+            c, s = np.cos(value), np.sin(value)
+            v = 1.0 - c
+            rot[tmp, 0, 0] = c + ax * ax * v
+            rot[tmp, 0, 1] = ax * ay * v - az * s
+            rot[tmp, 0, 2] = ax * az * v + ay * s
+            rot[tmp, 1, 0] = ay * ax * v + az * s
+            rot[tmp, 1, 1] = c + ay * ay * v
+            rot[tmp, 1, 2] = ay * az * v - ax * s
+            rot[tmp, 2, 0] = az * ax * v - ay * s
+            rot[tmp, 2, 1] = az * ay * v + ax * s
+            rot[tmp, 2, 2] = c + az * az * v
+            trans[tmp, 0] = trans[tmp, 1] = trans[tmp, 2] = 0.0
+        else:
+            for r in range(3):
+                for cc in range(3):
+                    rot[tmp, r, cc] = 1.0 if r == cc else 0.0
+            trans[tmp, 0], trans[tmp, 1], trans[tmp, 2] = ax * value, ay * value, az * value
+        # world row as a second temporary: parent_from_joint(q) = placement @ motion.
+        _compose(parent_from_joint_rotation[j], parent_from_joint_translation_m[j], rot[tmp], trans[tmp],
+                 rot[world], trans[world])
+        _compose(rot[parent[j]], trans[parent[j]], rot[world], trans[world], rot[j], trans[j])
+    # world_from_root = inverse(root_from_base): the base link's frame is the world frame.
+    _compose(rot[base_joint], trans[base_joint], joint_from_base_rotation, joint_from_base_translation_m,
+             rot[tmp], trans[tmp])
+    for r in range(3):
+        for cc in range(3):
+            rot[world, r, cc] = rot[tmp, cc, r]
+    for r in range(3):
+        trans[world, r] = -(rot[world, r, 0] * trans[tmp, 0] + rot[world, r, 1] * trans[tmp, 1]
+                            + rot[world, r, 2] * trans[tmp, 2])
+    for link in range(link_joint.shape[0]):
+        j = link_joint[link]
+        _compose(rot[j], trans[j], joint_from_link_rotation[link], joint_from_link_translation_m[link],
+                 rot[tmp], trans[tmp])
+        _compose(rot[world], trans[world], rot[tmp], trans[tmp],
+                 world_from_link_rotation[link], world_from_link_translation_m[link])
+
+
+@nb.njit(cache=True, nogil=True)
+def _poses_batch(qs, parent, parent_from_joint_rotation, parent_from_joint_translation_m, joint_type, joint_axis,
+                 q_slot, link_joint, joint_from_link_rotation, joint_from_link_translation_m, base_joint,
+                 joint_from_base_rotation, joint_from_base_translation_m, out):  # pragma: no cover (compiled)
+    n_joints, n_links = parent.shape[0], link_joint.shape[0]
+    scratch_rotation = np.zeros((n_joints + 2, 3, 3))
+    scratch_translation = np.zeros((n_joints + 2, 3))
+    link_rotation = np.zeros((n_links, 3, 3))
+    link_translation = np.zeros((n_links, 3))
+    for m in range(qs.shape[0]):
+        forward_links(qs[m], parent, parent_from_joint_rotation, parent_from_joint_translation_m, joint_type,
+                      joint_axis, q_slot, link_joint, joint_from_link_rotation, joint_from_link_translation_m,
+                      base_joint, joint_from_base_rotation, joint_from_base_translation_m, scratch_rotation,
+                      scratch_translation, link_rotation, link_translation)
+        for link in range(n_links):
+            for r in range(3):
+                for c in range(3):
+                    out[m, link, r, c] = link_rotation[link, r, c]
+                out[m, link, r, 3] = link_translation[link, r]
+            out[m, link, 3, 3] = 1.0

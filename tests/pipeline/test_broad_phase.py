@@ -1,0 +1,149 @@
+"""Sphere broad phase: conservative against FCL, same CollisionWorld answers with and without it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import octomap
+import pytest
+
+from robonav.pipeline.broad_phase import SphereBroadPhase
+from robonav.pipeline.collision import CollisionWorld, _bisection_order
+from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.scene import SceneObject
+
+MBM_BOX = Path("/work/shared/benchmarks/mbm/box.json")
+
+
+@pytest.fixture(scope="module")
+def panda() -> RobotModel:
+    """Open fingers; finger-finger and hand-link6 allowed as in MBM (their spheres, unlike their hulls, touch at home)."""
+    return RobotModel.from_config(RobotConfig(
+        fixed_joint_positions={"panda_finger_joint1": 0.04, "panda_finger_joint2": 0.04},
+        allowed_collision_pairs=(("panda_leftfinger", "panda_rightfinger"), ("panda_hand", "panda_link6"))))
+
+
+def _mbm_like_scene() -> list[SceneObject]:
+    """Problem 1 of MBM's `box` family when the benchmark is present, else a similar hand-made clutter."""
+    if MBM_BOX.is_file():
+        raw = json.loads(MBM_BOX.read_text())["problems"][0]["obstacles"]
+        return [SceneObject(o["name"], o["type"], tuple(o["position"]), tuple(o["orientation_xyzw"]),
+                            size_m=tuple(o["size"]) if o["type"] == "box" else None,
+                            radius_m=o.get("radius"), length_m=o.get("length")) for o in raw]
+    return [SceneObject("floor", "box", (0.5, 0.0, -0.02), size_m=(0.6, 0.8, 0.04)),
+            SceneObject("back", "box", (0.8, 0.0, 0.3), size_m=(0.04, 0.8, 0.6)),
+            SceneObject("side", "box", (0.5, 0.4, 0.3), (0.0, 0.0, 0.38, 0.92), size_m=(0.6, 0.04, 0.6)),
+            SceneObject("can", "cylinder", (0.5, -0.1, 0.1), radius_m=0.04, length_m=0.2)]
+
+
+def _clutter() -> list[SceneObject]:
+    return [*_mbm_like_scene(),
+            SceneObject("ball", "sphere", (0.3, 0.3, 0.5), radius_m=0.08),
+            SceneObject("pill", "capsule", (0.2, -0.4, 0.4), (0.3, 0.0, 0.0, 0.95), radius_m=0.05, length_m=0.3)]
+
+
+@pytest.fixture(scope="module")
+def worlds(panda: RobotModel) -> tuple[CollisionWorld, CollisionWorld]:
+    fast, slow = CollisionWorld(panda, padding_m=0.01), CollisionWorld(panda, padding_m=0.01, broad_phase=False)
+    for world in (fast, slow):
+        world.set_objects(_clutter())
+    return fast, slow
+
+
+def _random_states(robot: RobotModel, count: int, seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(robot.lower_limits_rad, robot.upper_limits_rad, size=(count, robot.dof))
+
+
+def test_suspect_whenever_fcl_collides(panda: RobotModel, worlds: tuple[CollisionWorld, CollisionWorld]) -> None:
+    fast, slow = worlds
+    broad = fast._broad_phase  # noqa: SLF001 (the world's own broad phase)
+    qs = _random_states(panda, 1500, seed=10)
+    colliding = np.array([slow.in_collision(q) for q in qs])
+    suspect = np.array([broad.state_suspect(q) for q in qs])
+    assert colliding.any() and (~colliding).any()
+    assert not np.any(colliding & ~suspect)
+    assert (~suspect).any()  # it clears something
+
+
+def test_same_answers_with_and_without_broad_phase(panda: RobotModel,
+                                                   worlds: tuple[CollisionWorld, CollisionWorld]) -> None:
+    fast, slow = worlds
+    qs = _random_states(panda, 2000, seed=11)
+    assert [fast.in_collision(q) for q in qs] == [slow.in_collision(q) for q in qs]
+    rng = np.random.default_rng(12)
+    free = [q for q in qs if not slow.in_collision(q)][:300]
+    edges = []
+    for q in free:
+        step = rng.normal(size=panda.dof)
+        edges.append((q, np.clip(q + 0.6 * step / np.abs(step).max(), panda.lower_limits_rad, panda.upper_limits_rad)))
+    fast_answers = [fast.motion_valid(a, b, 0.02) for a, b in edges]
+    assert fast_answers == [slow.motion_valid(a, b, 0.02) for a, b in edges]
+    assert any(fast_answers) and not all(fast_answers)
+
+
+def test_edge_visits_states_in_motion_valid_order(panda: RobotModel) -> None:
+    broad = SphereBroadPhase(panda)
+    # A box around the whole robot: every state is suspect, so the order is visible.
+    broad.set_objects([SceneObject("all", "box", (0.0, 0.0, 0.5), size_m=(3.0, 3.0, 3.0))])
+    a, b = panda.home_position_rad, panda.home_position_rad + 0.37
+    suspects, steps = broad.edge_suspects(a, b, 0.01)
+    assert steps == 37
+    assert suspects.tolist() == [37, *_bisection_order(37), 0]
+    first, _ = broad.edge_suspects(a, b, 0.01, first_only=True)
+    assert first.tolist() == [37]
+    broad.clear_objects()
+    assert broad.edge_suspects(a, b, 0.01)[0].size == 0
+    assert not broad.state_suspect(panda.home_position_rad)
+
+
+def test_attached_spheres(panda: RobotModel) -> None:
+    broad = SphereBroadPhase(panda, padding_m=0.0)
+    home = panda.home_position_rad
+    hand = panda.frame_pose(home, "panda_hand")
+    probe_world = hand[:3, 3] + hand[:3, 2] * 0.30  # 30 cm beyond the hand along its z axis
+    broad.set_objects([SceneObject("probe", "sphere", tuple(probe_world), radius_m=0.03)])
+    assert not broad.state_suspect(home)
+    # A 10 cm rod held by the hand (link frame), ending close to the probe.
+    centers = np.array([[0.0, 0.0, 0.1 + 0.04 * i] for i in range(5)])
+    broad.set_attached_spheres("rod", "panda_hand", centers, np.full(5, 0.03),
+                               touch_links=("panda_leftfinger", "panda_rightfinger"))
+    assert broad.state_suspect(home)
+    broad.clear_objects()
+    assert not broad.state_suspect(home)  # own link and touch links are ignored
+    broad.set_attached_spheres("rod", "panda_hand", centers, np.full(5, 0.03))
+    assert broad.state_suspect(home)  # now the fingers count
+    broad.remove_attached("rod")
+    assert not broad.state_suspect(home)
+
+
+def _octree_binary(points: np.ndarray, resolution_m: float) -> bytes:
+    tree = octomap.OcTree(resolution_m)
+    tree.updateNodes(np.asarray(points, dtype=np.float64), True, lazy_eval=True)
+    tree.updateInnerOccupancy()
+    return tree.writeBinary()
+
+
+def test_voxels_conservative_and_world_answers_equal(panda: RobotModel) -> None:
+    rng = np.random.default_rng(13)
+    target = panda.frame_pose(panda.home_position_rad, "panda_grasptarget")[:3, 3]
+    # A slab of voxels in front of the robot and a cube around the grasp target at home.
+    slab = np.stack(np.meshgrid(np.arange(0.45, 0.6, 0.02), np.arange(-0.3, 0.3, 0.02), np.arange(0.0, 0.8, 0.02),
+                                indexing="ij"), axis=-1).reshape(-1, 3)
+    cube = target + rng.uniform(-0.04, 0.04, size=(100, 3))
+    binary = _octree_binary(np.vstack([slab, cube]), 0.02)
+    fast, slow = CollisionWorld(panda, padding_m=0.01), CollisionWorld(panda, padding_m=0.01, broad_phase=False)
+    for world in (fast, slow):
+        world.set_octree(binary, 0.02)
+    assert slow.in_collision(panda.home_position_rad) and fast.in_collision(panda.home_position_rad)
+    qs = _random_states(panda, 300, seed=14)
+    slow_answers = [slow.in_collision(q) for q in qs]
+    assert any(slow_answers) and not all(slow_answers)
+    assert [fast.in_collision(q) for q in qs] == slow_answers
+    broad = fast._broad_phase  # noqa: SLF001
+    assert all(broad.state_suspect(q) for q, hit in zip(qs, slow_answers) if hit)
+    fast.clear_octree()
+    assert not fast.in_collision(panda.home_position_rad)
+    assert not broad.state_suspect(panda.home_position_rad)
