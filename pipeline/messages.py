@@ -73,31 +73,75 @@ class Occupancy(Message):
 
 @dataclass(frozen=True)
 class PlanRequest(Message):
-    """`planner/plan` (query) request: a joint-space goal."""
+    """`planner/plan` (query) request. Exactly one goal form: `goal_positions`, `goal_set` or
+    `goal_position_m` (a Cartesian goal for `goal_link`)."""
 
-    goal_positions: FloatArray = array_field("<f8", (None,))
+    goal_positions: FloatArray | None = array_field("<f8", (None,), optional=True)
     """(n,) goal configuration [rad], in `joint_names` order."""
     joint_names: tuple[str, ...] | None = None
     """Order of the joint vectors; default: the robot's planning joints."""
     start_positions: FloatArray | None = array_field("<f8", (None,), optional=True)
     """(n,) start configuration [rad]; default: the latest joint state."""
+    goal_set: FloatArray | None = array_field("<f8", (None, None), optional=True)
+    """(G, n) several joint goals [rad]; the path ends at whichever it reaches."""
+    goal_link: str | None = None
+    """Link of a Cartesian goal; default: the robot's end-effector link."""
+    goal_position_m: FloatArray | None = array_field("<f8", (3,), optional=True)
+    """(3,) target position of `goal_link` in the world frame [m]."""
+    goal_quat_xyzw: FloatArray | None = array_field("<f8", (4,), optional=True)
+    """(4,) target orientation of `goal_link`; absent: any orientation."""
+    position_tolerance_m: float | None = None
+    """Cartesian goal position tolerance [m]; default 0.001."""
+    orientation_tolerance_rad: float | None = None
+    """Cartesian goal rotation-angle tolerance [rad]; default 0.01."""
+    goal_tolerance_rad: float | None = None
+    """Joint goal tolerance per joint [rad]; default 0 (exact)."""
     planner_id: str | None = None
     allowed_planning_time: float | None = None
     """[s]"""
+    num_planning_attempts: int | None = None
     seed: int | None = None
-    """Seeds path simplification; OMPL's sampler is seeded once per planner process."""
+    """Seeds IK restarts, goal sampling and path simplification; OMPL's sampler is seeded once
+    per planner process."""
     simplify: bool | None = None
+    workspace_min_m: FloatArray | None = array_field("<f8", (3,), optional=True)
+    """(3,) lower corner of a world-frame box the end-effector link must stay in [m]."""
+    workspace_max_m: FloatArray | None = array_field("<f8", (3,), optional=True)
     max_velocity_scaling_factor: float | None = None
     max_acceleration_scaling_factor: float | None = None
     request_id: str | None = None
 
     def __post_init__(self) -> None:
+        forms = [k for k in ("goal_positions", "goal_set", "goal_position_m") if getattr(self, k) is not None]
+        if len(forms) != 1:
+            raise ValueError(f"PlanRequest: give exactly one of goal_positions, goal_set, goal_position_m "
+                             f"(got {', '.join(forms) or 'none'})")
+        if self.goal_position_m is None:
+            for key in ("goal_link", "goal_quat_xyzw", "position_tolerance_m", "orientation_tolerance_rad"):
+                if getattr(self, key) is not None:
+                    raise ValueError(f"PlanRequest: '{key}' belongs to a Cartesian goal (goal_position_m)")
+        if self.goal_set is not None and self.goal_set.shape[0] == 0:
+            raise ValueError("PlanRequest: goal_set must hold at least one goal")
+        joint_vectors = {"goal_positions": self.goal_positions, "goal_set": self.goal_set,
+                         "start_positions": self.start_positions}
         if self.joint_names is not None:
-            _check_same_length("PlanRequest", self.joint_names, goal_positions=self.goal_positions,
-                               start_positions=self.start_positions)
-        elif self.start_positions is not None and self.start_positions.shape != self.goal_positions.shape:
-            raise ValueError(f"PlanRequest: start_positions has {self.start_positions.shape[0]} values, "
-                             f"goal_positions {self.goal_positions.shape[0]}")
+            _check_same_length("PlanRequest", self.joint_names, **joint_vectors)
+        else:
+            lengths = {k: v.shape[-1] for k, v in joint_vectors.items() if v is not None}
+            if len(set(lengths.values())) > 1:
+                raise ValueError(f"PlanRequest: joint vectors differ in length: {lengths}")
+        if self.goal_quat_xyzw is not None and not 0.5 < float(np.linalg.norm(self.goal_quat_xyzw)) < 2.0:
+            raise ValueError(f"PlanRequest: goal_quat_xyzw must be a unit quaternion, got {self.goal_quat_xyzw.tolist()}")
+        for key in ("position_tolerance_m", "orientation_tolerance_rad", "goal_tolerance_rad"):
+            value = getattr(self, key)
+            if value is not None and not value >= 0:
+                raise ValueError(f"PlanRequest: {key} must be >= 0, got {value}")
+        if (self.workspace_min_m is None) != (self.workspace_max_m is None):
+            raise ValueError("PlanRequest: give both workspace_min_m and workspace_max_m, or neither")
+        if self.workspace_min_m is not None and not np.all(self.workspace_min_m < self.workspace_max_m):
+            raise ValueError("PlanRequest: workspace_min_m must be below workspace_max_m in x, y and z")
+        if self.num_planning_attempts is not None and self.num_planning_attempts < 1:
+            raise ValueError(f"PlanRequest: num_planning_attempts must be >= 1, got {self.num_planning_attempts}")
         _check_scaling_factors("PlanRequest", self.max_velocity_scaling_factor, self.max_acceleration_scaling_factor)
         if self.allowed_planning_time is not None and self.allowed_planning_time <= 0:
             raise ValueError(f"PlanRequest: allowed_planning_time must be > 0, got {self.allowed_planning_time}")
@@ -111,6 +155,12 @@ class PlanResponse(Message):
     path: FloatArray = array_field("<f8", (None, None))
     """(K, n) waypoints [rad], first = start, last = goal."""
     planner_id: str = "rrtconnect"
+    """The planner that found the path (for `auto`: the one it chose or that won the race;
+    `direct` when the straight segment was free)."""
+    goal_index: int = 0
+    """Index into `goal_set` (or into the IK solutions of a Cartesian goal) of the goal reached."""
+    goal_positions: FloatArray | None = array_field("<f8", (None,), optional=True)
+    """(n,) the goal the path ends at [rad] (= the last waypoint)."""
     planning_time_s: float = 0.0
     simplification_time_s: float = 0.0
     path_length_rad: float = 0.0
@@ -262,7 +312,157 @@ def decode_reply(payload: bytes, expected: type[Message]) -> Message:
     return expected.from_dict(obj)
 
 
+SceneOperation = Literal["add", "move", "remove", "attach", "detach", "clear", "list"]
+SCENE_OPERATIONS: tuple[str, ...] = ("add", "move", "remove", "attach", "detach", "clear", "list")
+SCENE_OBJECT_TYPES: tuple[str, ...] = ("box", "cylinder", "sphere", "capsule", "mesh")
+_SHAPE_KEYS: tuple[str, ...] = ("type", "size_m", "radius_m", "length_m", "vertices_m", "triangles")
+
+
+def _invalid(message: str, key: str) -> ProtocolError:
+    return ProtocolError(ErrorCode.INVALID_REQUEST, message, {"key": key})
+
+
+@dataclass(frozen=True, eq=False)
+class SceneObjectSpec(Message):
+    """One collision object in a `planner/scene` request; travels nested, without `v`.
+
+    Shapes follow `SceneObject`: box `size_m` (full sides), sphere `radius_m`, cylinder and
+    capsule `radius_m` + `length_m` along local z (a capsule's between its cap centres), mesh
+    `vertices_m` + `triangles` in the object frame.
+    """
+
+    name: str
+    type: str | None = None
+    """box, cylinder, sphere, capsule or mesh; required to add (or attach) a new object."""
+    position_m: tuple[float, ...] | None = None
+    """(3,) origin of the object in `frame_id` [m]."""
+    quat_xyzw: tuple[float, ...] | None = None
+    """(4,) orientation in `frame_id`, scalar last; default identity (move: unchanged)."""
+    size_m: tuple[float, ...] | None = None
+    """(3,) box full side lengths [m]."""
+    radius_m: float | None = None
+    length_m: float | None = None
+    vertices_m: FloatArray | None = array_field("<f8", (None, 3), optional=True)
+    """(N, 3) mesh vertices in the object frame [m]."""
+    triangles: np.ndarray | None = array_field("<i8", (None, 3), optional=True)
+    """(M, 3) mesh vertex indices, int."""
+    frame_id: str | None = None
+    """Frame of the pose: "world" (default) or, for attach, the attach link."""
+
+    def __post_init__(self) -> None:
+        for key, length in (("position_m", 3), ("quat_xyzw", 4), ("size_m", 3)):
+            value = getattr(self, key)
+            if value is not None and len(value) != length:
+                raise _invalid(f"SceneObjectSpec '{self.name}': {key} needs {length} values, got {len(value)}", key)
+        if self.type is not None and self.type not in SCENE_OBJECT_TYPES:
+            raise _invalid(f"SceneObjectSpec '{self.name}': type must be one of {list(SCENE_OBJECT_TYPES)}, got {self.type!r}",
+                           "type")
+
+    def _key(self) -> tuple[Any, ...]:
+        return tuple((v.shape, v.tobytes()) if isinstance(v, np.ndarray) else v
+                     for v in (getattr(self, f) for f in self.__dataclass_fields__))
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, SceneObjectSpec) and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
+
+@dataclass(frozen=True)
+class SceneRequest(Message):
+    """`planner/scene` (query) request: change or list the planning scene's collision objects.
+
+    `add` adds `objects` to the world, replacing same-named ones; `move` sets only the pose of
+    world `objects`; `remove` drops `names` (world or attached); `attach` fixes `objects` (new,
+    posed in `frame_id`) or `names` (world objects, where they are) to `link`; `detach` turns
+    attached `names` back into world objects where the robot holds them; `clear` drops all;
+    `list` changes nothing. Every operation answers with the whole scene.
+    """
+
+    operation: str
+    objects: tuple[SceneObjectSpec, ...] = ()
+    names: tuple[str, ...] = ()
+    link: str | None = None
+    """attach: the robot link the objects move with."""
+    touch_links: tuple[str, ...] | None = None
+    """attach: robot links the objects may touch besides `link` (e.g. the fingers)."""
+    joint_names: tuple[str, ...] | None = None
+    """Order of `joint_positions`; default the robot's planning joints."""
+    joint_positions: FloatArray | None = array_field("<f8", (None,), optional=True)
+    """(n,) robot state for attach/detach with world poses [rad]; default the latest joint state."""
+    request_id: str | None = None
+
+    def __post_init__(self) -> None:
+        op = self.operation
+        if op not in SCENE_OPERATIONS:
+            raise _invalid(f"SceneRequest: operation must be one of {list(SCENE_OPERATIONS)}, got {op!r}", "operation")
+        wants = {"add": "objects", "move": "objects", "remove": "names", "detach": "names"}.get(op)
+        if wants == "objects" and (not self.objects or self.names):
+            raise _invalid(f"SceneRequest: {op} needs 'objects' (and no 'names')", "objects")
+        if wants == "names" and (not self.names or self.objects):
+            raise _invalid(f"SceneRequest: {op} needs 'names' (and no 'objects')", "names")
+        if op == "attach" and (not self.link or not (self.objects or self.names)):
+            raise _invalid("SceneRequest: attach needs 'link' and 'objects' or 'names'", "link" if not self.link else "objects")
+        if op in ("clear", "list") and (self.objects or self.names):
+            raise _invalid(f"SceneRequest: {op} takes no 'objects' or 'names'", "objects" if self.objects else "names")
+        every = [o.name for o in self.objects] + list(self.names)
+        for i, name in enumerate(every):
+            if not name or name in every[:i]:
+                key = f"objects[{i}].name" if i < len(self.objects) else f"names[{i - len(self.objects)}]"
+                raise _invalid(f"SceneRequest: object name {name!r} is empty or given twice", key)
+        for i, obj in enumerate(self.objects):
+            if op == "add" or (op == "attach" and obj.type is not None):
+                for key in ("type", "position_m"):
+                    if getattr(obj, key) is None:
+                        raise _invalid(f"SceneRequest: {op} of '{obj.name}' needs {key}", f"objects[{i}].{key}")
+            if op == "move":
+                shape_keys = [k for k in _SHAPE_KEYS if getattr(obj, k) is not None]
+                if shape_keys:
+                    raise _invalid(f"SceneRequest: move changes only the pose; objects[{i}] has {shape_keys[0]}",
+                                   f"objects[{i}].{shape_keys[0]}")
+                if obj.position_m is None and obj.quat_xyzw is None:
+                    raise _invalid(f"SceneRequest: move of '{obj.name}' needs position_m or quat_xyzw", f"objects[{i}].position_m")
+        if self.joint_names is not None and self.joint_positions is not None:
+            _check_same_length("SceneRequest", self.joint_names, joint_positions=self.joint_positions)
+
+
+@dataclass(frozen=True)
+class SceneObjectState(Message):
+    """One object of the planning scene in a `planner/scene` reply; travels nested, without `v`."""
+
+    name: str
+    type: str
+    position_m: tuple[float, ...]
+    """(3,) origin in `frame_id` [m]."""
+    quat_xyzw: tuple[float, ...]
+    """(4,) orientation in `frame_id`, scalar last."""
+    frame_id: str = "world"
+    """"world", or the link of an attached object (the pose is then link_from_object)."""
+    attached_link: str | None = None
+    """The link the object is attached to; absent for world objects."""
+    touch_links: tuple[str, ...] = ()
+    size_m: tuple[float, ...] | None = None
+    radius_m: float | None = None
+    length_m: float | None = None
+    vertex_count: int | None = None
+    """Mesh only: number of vertices (the arrays are not echoed)."""
+
+
+@dataclass(frozen=True)
+class SceneResponse(Message):
+    """`planner/scene` (query) success reply: the whole scene after the operation."""
+
+    revision: int
+    """Scene revision: +1 for every request that changed the scene."""
+    objects: tuple[SceneObjectState, ...] = ()
+    """World objects, then attached ones, each by name."""
+    request_id: str | None = None
+    ok: bool = True
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     JointState, PointCloud, Occupancy, PlanRequest, PlanResponse, ExecuteRequest, ExecuteResponse,
     StopRequest, StopResponse, Setpoint, ExecutorStatus, ContactsRequest, ContactsResponse, ErrorReply,
+    SceneRequest, SceneResponse,
 )

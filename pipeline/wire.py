@@ -41,6 +41,8 @@ class ErrorCode(str, enum.Enum):
     OUT_OF_JOINT_LIMITS = "OUT_OF_JOINT_LIMITS"
     START_IN_COLLISION = "START_IN_COLLISION"
     GOAL_IN_COLLISION = "GOAL_IN_COLLISION"
+    GOAL_UNREACHABLE = "GOAL_UNREACHABLE"
+    """Inverse kinematics found no configuration within a Cartesian goal's tolerances."""
     NO_SOLUTION = "NO_SOLUTION"
     """The planner found no path within the allowed planning time."""
     UNKNOWN_PLANNER = "UNKNOWN_PLANNER"
@@ -84,17 +86,23 @@ class Message:
     """Base of wire messages: frozen dataclasses with `to_wire`/`from_wire`."""
 
     def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"v": SCHEMA_VERSION}
+        return {"v": SCHEMA_VERSION, **self._fields_to_dict()}
+
+    def _fields_to_dict(self) -> dict[str, Any]:
+        """The fields as a plain map without `v`; a Message nested in another travels in this form."""
+        out: dict[str, Any] = {}
         for f in dataclasses.fields(self):  # type: ignore[arg-type]
             value = getattr(self, f.name)
             if value is None:
                 continue
             if "array" in f.metadata:
                 out[f.name] = encode_array(np.asarray(value), f.metadata["array"].dtype)
+            elif isinstance(value, Message):
+                out[f.name] = value._fields_to_dict()
             elif dataclasses.is_dataclass(value) and not isinstance(value, type):
                 out[f.name] = dataclasses.asdict(value)
             elif isinstance(value, tuple):
-                out[f.name] = list(value)
+                out[f.name] = [v._fields_to_dict() if isinstance(v, Message) else v for v in value]
             else:
                 out[f.name] = value
         return out
@@ -114,30 +122,40 @@ class Message:
             raise ProtocolError(ErrorCode.UNSUPPORTED_VERSION,
                                 f"{cls.__name__}: schema version {version!r} is not supported (this side speaks {SCHEMA_VERSION})",
                                 {"supported": [SCHEMA_VERSION], "got": version})
+        return cls._fields_from_dict(obj)
+
+    @classmethod
+    def _fields_from_dict(cls: type[M], obj: dict[str, Any], prefix: str = "") -> M:
+        """Decode the fields of a map without `v`; `prefix` is the key path of a nested message."""
         hints = get_type_hints(cls)
         fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
         unknown = sorted(str(k) for k in obj if k not in fields)
         if unknown:
             raise ProtocolError(ErrorCode.MALFORMED_MESSAGE,
-                                f"{cls.__name__}: unknown key '{unknown[0]}' (known: {', '.join(sorted(fields))})",
-                                {"key": unknown[0]})
+                                f"{cls.__name__}: unknown key '{prefix}{unknown[0]}' (known: {', '.join(sorted(fields))})",
+                                {"key": prefix + unknown[0]})
         kwargs: dict[str, Any] = {}
         for name, f in fields.items():
             has_default = f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
             if name not in obj or obj[name] is None:
                 if not has_default:
-                    raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{cls.__name__}: missing key '{name}'", {"key": name})
+                    raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{cls.__name__}: missing key '{prefix}{name}'",
+                                        {"key": prefix + name})
                 continue
             if "array" in f.metadata:
-                kwargs[name] = decode_array(obj[name], f.metadata["array"], key=name)
+                kwargs[name] = decode_array(obj[name], f.metadata["array"], key=prefix + name)
             else:
-                kwargs[name] = _decode_value(hints[name], obj[name], key=name, owner=cls.__name__)
+                kwargs[name] = _decode_value(hints[name], obj[name], key=prefix + name, owner=cls.__name__)
         try:
             return cls(**kwargs)
-        except ProtocolError:
+        except ProtocolError as exc:
+            if prefix and "key" in exc.details:  # a nested message names its own keys: make them full paths
+                exc.details["key"] = prefix + str(exc.details["key"])
             raise
         except (ValueError, TypeError) as exc:
-            raise ProtocolError(ErrorCode.INVALID_REQUEST, f"{cls.__name__}: {exc}") from exc
+            details = {"key": prefix.rstrip(".")} if prefix else {}
+            where = f" (at '{prefix.rstrip('.')}')" if prefix else ""
+            raise ProtocolError(ErrorCode.INVALID_REQUEST, f"{cls.__name__}{where}: {exc}", details) from exc
 
     @classmethod
     def from_wire(cls: type[M], payload: bytes) -> M:
@@ -196,6 +214,10 @@ def _decode_value(tp: Any, value: Any, *, key: str, owner: str) -> Any:
     if origin in (typing.Union, types.UnionType):
         inner = [a for a in args if a is not type(None)]
         return _decode_value(inner[0], value, key=key, owner=owner)
+    if isinstance(tp, type) and issubclass(tp, Message):
+        if not isinstance(value, dict):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a map", {"key": key})
+        return tp._fields_from_dict(value, prefix=f"{key}.")
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a map", {"key": key})

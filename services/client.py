@@ -14,8 +14,8 @@ import numpy as np
 import zenoh
 
 from robonav.pipeline.messages import (ContactsRequest, ContactsResponse, ErrorReply, ExecuteRequest, ExecuteResponse,
-                                       ExecutorStatus, JointState, Occupancy, PlanRequest, PlanResponse, StopRequest,
-                                       StopResponse, decode_reply)
+                                       ExecutorStatus, JointState, Occupancy, PlanRequest, PlanResponse, SceneRequest,
+                                       SceneResponse, StopRequest, StopResponse, decode_reply)
 from robonav.pipeline.wire import Message
 from robonav.services.common import declare_latched_subscriber
 from robonav.services.keys import Keys
@@ -83,6 +83,21 @@ class RobonavClient:
     def plan(self, goal_rad: np.ndarray, *, timeout_s: float = 30.0, **fields) -> PlanResponse | ErrorReply:  # noqa: ANN003
         return self.query(self.keys.plan, PlanRequest(goal_positions=np.asarray(goal_rad, float), **fields),
                           PlanResponse, timeout_s)
+
+    def plan_request(self, request: PlanRequest, *, timeout_s: float = 30.0) -> PlanResponse | ErrorReply:
+        """Any plan request: a goal set, a Cartesian goal, workspace bounds, ..."""
+        return self.query(self.keys.plan, request, PlanResponse, timeout_s)
+
+    def plan_to_pose(self, position_m: Sequence[float], quat_xyzw: Sequence[float] | None = None, *,
+                     timeout_s: float = 30.0, **fields) -> PlanResponse | ErrorReply:  # noqa: ANN003
+        """Plan to a Cartesian goal for `goal_link` (default: the end-effector); no quaternion = any orientation."""
+        request = PlanRequest(goal_position_m=np.asarray(position_m, float),
+                              goal_quat_xyzw=None if quat_xyzw is None else np.asarray(quat_xyzw, float), **fields)
+        return self.plan_request(request, timeout_s=timeout_s)
+
+    def scene(self, request: SceneRequest, *, timeout_s: float = 10.0) -> SceneResponse | ErrorReply:
+        """Change or list the planner's collision objects (`planner/scene`)."""
+        return self.query(self.keys.scene, request, SceneResponse, timeout_s)
 
     def execute(self, path: np.ndarray, *, timeout_s: float = 10.0, **fields) -> ExecuteResponse | ErrorReply:  # noqa: ANN003
         return self.query(self.keys.execute, ExecuteRequest(path=np.asarray(path, float), **fields),

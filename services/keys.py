@@ -35,6 +35,10 @@ class Keys:
         return f"{self.root}/planner/plan"
 
     @property
+    def scene(self) -> str:
+        return f"{self.root}/planner/scene"
+
+    @property
     def execute(self) -> str:
         return f"{self.root}/executor/execute"
 

@@ -16,21 +16,24 @@ import zenoh
 from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.joint_order import reorder_to_robot
 from robonav.pipeline.messages import JointState, Occupancy, PlanRequest, PlanResponse
-from robonav.pipeline.planning.motion_planner import PLANNERS, MotionPlanner, PlanProblem
+from robonav.pipeline.planning.motion_planner import PLANNERS, MotionPlanner, PlanProblem, PoseGoal
+from robonav.pipeline.planning.ompl_planners import seed_ompl_once
 from robonav.pipeline.planning.result import PlanStatus
-from robonav.pipeline.planning.rrt_connect import seed_ompl_once
 from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.transforms import make_transform
 from robonav.pipeline.wire import ErrorCode, ProtocolError
 from robonav.services.common import (Node, declare_latched_subscriber, guarded_queryable, guarded_subscriber, decode_request, reply_error,
                                      reply_ok, run_service)
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
+from robonav.services.planning_scene import PlanningScene
 
 log = logging.getLogger("robonav.planner")
 
 STATUS_CODES = {
     PlanStatus.START_INVALID: ErrorCode.START_IN_COLLISION,
     PlanStatus.GOAL_INVALID: ErrorCode.GOAL_IN_COLLISION,
+    PlanStatus.GOAL_UNREACHABLE: ErrorCode.GOAL_UNREACHABLE,
     PlanStatus.OUT_OF_BOUNDS: ErrorCode.OUT_OF_JOINT_LIMITS,
     PlanStatus.TIMEOUT: ErrorCode.NO_SOLUTION,
 }
@@ -56,6 +59,8 @@ class PlannerNode(Node):
             declare_latched_subscriber(session, keys.occupancy, guarded_subscriber(self.on_occupancy, "planner")),
         ]
         self._queryable = session.declare_queryable(keys.plan, guarded_queryable(self.handle_plan, "planner"))
+        self.scene = PlanningScene(self.world, self._lock, current_q=self._start_from_joint_state)
+        self._scene_queryable = session.declare_queryable(keys.scene, guarded_queryable(self.scene.handle_scene, "planner"))
 
     def on_joint_state(self, sample: zenoh.Sample) -> None:
         state = JointState.from_wire(sample.payload.to_bytes())
@@ -105,7 +110,6 @@ class PlannerNode(Node):
     def handle_plan(self, query: zenoh.Query) -> None:
         request = decode_request(query, PlanRequest)
         names = self.robot.joint_names
-        goal = reorder_to_robot(request.goal_positions, request.joint_names, names, "goal_positions")
         if request.start_positions is not None:
             start = reorder_to_robot(request.start_positions, request.joint_names, names, "start_positions")
         else:
@@ -115,10 +119,14 @@ class PlannerNode(Node):
             raise ProtocolError(ErrorCode.UNKNOWN_PLANNER, f"unknown planner_id {planner_id!r}", {"known": list(PLANNERS)})
         self._check_map()
         problem = PlanProblem(
-            start_rad=start, goal_rad=goal, planner_id=planner_id,
+            start_rad=start, goals_rad=self._joint_goals(request), pose_goal=self._pose_goal(request),
+            planner_id=planner_id,
             allowed_planning_time_s=request.allowed_planning_time or self.cfg.planner.allowed_planning_time_s,
+            num_planning_attempts=request.num_planning_attempts or 1,
             seed=request.seed if request.seed is not None else self.cfg.planner.seed,
             simplify=self.cfg.planner.simplify if request.simplify is None else request.simplify,
+            goal_tolerance_rad=request.goal_tolerance_rad or 0.0,
+            workspace_min_m=request.workspace_min_m, workspace_max_m=request.workspace_max_m,
         )
         with self._lock:
             self._apply_pending_map()
@@ -130,20 +138,45 @@ class PlannerNode(Node):
         if outcome.status is not PlanStatus.SUCCESS or outcome.path is None:
             reply_error(query, STATUS_CODES[outcome.status], outcome.detail, outcome.details)
             return
-        log.info("planned: %d waypoints, %.1f ms, length %.2f rad", len(outcome.path),
+        log.info("planned with %s: %d waypoints, %.1f ms, length %.2f rad", outcome.planner_id, len(outcome.path),
                  outcome.planning_time_s * 1e3, outcome.path_length_rad)
         reply_ok(query, PlanResponse(
-            joint_names=names, path=outcome.path, planner_id=planner_id,
+            joint_names=names, path=outcome.path, planner_id=outcome.planner_id, goal_index=outcome.goal_index,
+            goal_positions=outcome.path[-1],
             planning_time_s=outcome.planning_time_s, simplification_time_s=outcome.simplification_time_s,
             path_length_rad=outcome.path_length_rad, max_joint_step_rad=outcome.max_joint_step_rad,
-            min_clearance_m=outcome.min_clearance_m if np.isfinite(outcome.min_clearance_m) else None, waypoint_count=len(outcome.path), occupancy_stamp=map_stamp,
+            min_clearance_m=outcome.min_clearance_m if np.isfinite(outcome.min_clearance_m) else None,
+            waypoint_count=len(outcome.path), occupancy_stamp=map_stamp,
             max_velocity_scaling_factor=request.max_velocity_scaling_factor,
             max_acceleration_scaling_factor=request.max_acceleration_scaling_factor,
             request_id=request.request_id,
         ))
 
+    def _joint_goals(self, request: PlanRequest) -> np.ndarray | None:
+        names = self.robot.joint_names
+        if request.goal_positions is not None:
+            return reorder_to_robot(request.goal_positions, request.joint_names, names, "goal_positions")
+        if request.goal_set is not None:
+            return np.array([reorder_to_robot(g, request.joint_names, names, f"goal_set[{k}]")
+                             for k, g in enumerate(request.goal_set)])
+        return None
+
+    def _pose_goal(self, request: PlanRequest) -> PoseGoal | None:
+        if request.goal_position_m is None:
+            return None
+        link = request.goal_link or self.robot.config.end_effector_link  # an unknown link fails in IK: INVALID_REQUEST
+        quat = request.goal_quat_xyzw if request.goal_quat_xyzw is not None else np.array([0.0, 0.0, 0.0, 1.0])
+        return PoseGoal(
+            link=link, world_from_target=make_transform(request.goal_position_m, quat / np.linalg.norm(quat)),
+            position_tolerance_m=request.position_tolerance_m if request.position_tolerance_m is not None else 1e-3,
+            orientation_tolerance_rad=(None if request.goal_quat_xyzw is None else
+                                       request.orientation_tolerance_rad if request.orientation_tolerance_rad is not None
+                                       else 0.01),
+        )
+
     def close(self) -> None:
         self._queryable.undeclare()
+        self._scene_queryable.undeclare()
         for sub in self._subs:
             sub.undeclare()
 

@@ -10,8 +10,9 @@ from robonav.pipeline.config import require
 
 @dataclass(frozen=True)
 class PlannerConfig:
-    planner_id: Literal["rrtconnect"] = "rrtconnect"
-    """Default OMPL planner when a request names none."""
+    planner_id: Literal["rrtconnect", "rrt", "rrtstar", "prm", "prmstar", "bitstar", "aorrtc",
+                        "astar", "dijkstra", "potential_field", "auto"] = "rrtconnect"
+    """Default planner when a request names none."""
     allowed_planning_time_s: float = 2.0
     """Default planning budget per request [s]."""
     range_rad: float = 0.0
@@ -27,6 +28,14 @@ class PlannerConfig:
     """A plan request fails with OCCUPANCY_STALE when the newest map is older than this [s]."""
     require_occupancy: bool = True
     """Refuse to plan (OCCUPANCY_MISSING) until a first occupancy map arrived."""
+    ik_restarts: int = 20
+    """Random restarts of inverse kinematics for a pose goal."""
+    ik_solutions: int = 4
+    """Distinct IK solutions collected into a pose goal's goal set."""
+    lattice_resolution_rad: float = 0.1
+    """Joint step of the A*/Dijkstra lattice [rad]."""
+    report_clearance: bool = True
+    """Measure the path's minimum clearance for the reply (FCL distances at 12 states)."""
     first_map_wait_s: float = 2.0
     """How long a plan request waits for the first occupancy map before OCCUPANCY_MISSING [s]."""
 
@@ -35,5 +44,9 @@ class PlannerConfig:
         require(self.range_rad >= 0, f"planner.range_rad must be >= 0, got {self.range_rad}")
         require(self.edge_resolution_rad > 0, f"planner.edge_resolution_rad must be > 0, got {self.edge_resolution_rad}")
         require(self.shortcut_iterations >= 0, f"planner.shortcut_iterations must be >= 0, got {self.shortcut_iterations}")
+        require(self.ik_restarts >= 0, f"planner.ik_restarts must be >= 0, got {self.ik_restarts}")
+        require(self.ik_solutions >= 1, f"planner.ik_solutions must be >= 1, got {self.ik_solutions}")
+        require(self.lattice_resolution_rad > 0,
+                f"planner.lattice_resolution_rad must be > 0, got {self.lattice_resolution_rad}")
         require(self.first_map_wait_s >= 0, f"planner.first_map_wait_s must be >= 0, got {self.first_map_wait_s}")
         require(self.occupancy_max_age_s > 0, f"planner.occupancy_max_age_s must be > 0, got {self.occupancy_max_age_s}")

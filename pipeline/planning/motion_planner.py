@@ -1,12 +1,16 @@
-"""One planning query against a collision world: checks, OMPL search, shortcutting, metrics.
+"""One planning query against a collision world: goals, checks, search, simplification, metrics.
 
-This is the planner service's core, free of Zenoh: a joint-space problem in, a path with its
-metrics or a status that says why not out. Every returned path is re-validated.
+This is the planner service's core, free of Zenoh: a joint-space problem (joint goals, a goal
+set or a Cartesian pose goal) in, a path with its metrics or a status that says why not out.
+Every returned path is re-validated against the collision world at the edge resolution.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -14,28 +18,65 @@ import numpy as np
 
 from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.planning.config import PlannerConfig
+from robonav.pipeline.planning.ik import IkStatus, solve_ik
+from robonav.pipeline.planning.lattice import plan_lattice
 from robonav.pipeline.planning.metrics import interpolate_path, max_joint_step_rad, path_length_rad
-from robonav.pipeline.planning.result import PlanStatus
-from robonav.pipeline.planning.rrt_connect import plan_rrt_connect
+from robonav.pipeline.planning.ompl_planners import PLANNER_CLASSES, JointSpaceProblem, OmplSpace, race
+from robonav.pipeline.planning.potential_field import PotentialFieldConfig, plan_potential_field
+from robonav.pipeline.planning.result import PlanResult, PlanStatus
 from robonav.pipeline.planning.shortcut import shortcut_path
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.transforms import FloatArray
 
-PLANNERS: tuple[str, ...] = ("rrtconnect",)
+BASELINES: tuple[str, ...] = ("astar", "dijkstra", "potential_field")
+"""Seed baselines the literature compares against (slow in 7-D; see their modules)."""
+PLANNERS: tuple[str, ...] = (*PLANNER_CLASSES, *BASELINES, "auto")
 CLEARANCE_SAMPLES = 12
+_AUTO_HISTORY = 20
+"""Outcomes per planner that `auto` remembers for the current world."""
+
+
+@dataclass(frozen=True)
+class PoseGoal:
+    """A Cartesian goal for one link, solved by IK into a goal set.
+
+    Attributes:
+        link: Link whose frame must reach the target.
+        world_from_target: (4, 4) target pose of the link frame in the world frame.
+        position_tolerance_m: Largest position error [m].
+        orientation_tolerance_rad: Largest rotation angle error [rad]; None = position only.
+    """
+
+    link: str
+    world_from_target: FloatArray
+    position_tolerance_m: float = 1e-3
+    orientation_tolerance_rad: float | None = 0.01
 
 
 @dataclass(frozen=True)
 class PlanProblem:
+    """One plan query. Exactly one of `goals_rad` and `pose_goal` is given."""
+
     start_rad: FloatArray
     """(n,) start configuration in the robot's joint order [rad]."""
-    goal_rad: FloatArray
-    """(n,) goal configuration [rad]."""
+    goals_rad: FloatArray | None = None
+    """(n,) goal or (G, n) goal set [rad]; the path ends at whichever goal it reaches."""
+    pose_goal: PoseGoal | None = None
     planner_id: str = "rrtconnect"
     allowed_planning_time_s: float = 2.0
+    num_planning_attempts: int = 1
+    """Attempts within the time budget; the shortest path wins (MoveIt's parameter)."""
     seed: int = 0
-    """Seeds the shortcutting; OMPL's own sampler is seeded per process."""
+    """Seeds IK restarts, goal sampling, shortcutting and `auto`'s probes. OMPL's own sampler
+    is seeded once per process (see `seed_ompl_once`)."""
     simplify: bool = True
+    goal_tolerance_rad: float = 0.0
+    """A joint goal that is in collision or out of limits may be replaced by valid states
+    within this distance in every joint [rad] (MoveIt's joint constraint tolerance)."""
+    workspace_min_m: FloatArray | None = None
+    """(3,) lower corner of a world-frame box the end-effector link must stay in [m]."""
+    workspace_max_m: FloatArray | None = None
+    """(3,) upper corner of that box [m]."""
 
 
 @dataclass(frozen=True)
@@ -46,71 +87,291 @@ class PlanOutcome:
     """(K, n) waypoints [rad] when status is SUCCESS."""
     details: dict[str, Any] = field(default_factory=dict)
     """Machine-readable specifics: colliding pairs, violated joints."""
+    planner_id: str = ""
+    """The planner that produced the path (for `auto`, the one it chose or that won the race)."""
     planning_time_s: float = 0.0
     simplification_time_s: float = 0.0
     path_length_rad: float = 0.0
     max_joint_step_rad: float = 0.0
     min_clearance_m: float = float("inf")
+    goal_index: int = 0
+    """Which goal of the goal set the path ends at."""
 
 
 class MotionPlanner:
-    """Plans for one robot in one collision world (the world is updated by the caller)."""
+    """Plans for one robot in one collision world (the world is updated by the caller).
+
+    OMPL planners and PRM roadmaps are kept while `world.revision` is unchanged. Not
+    thread-safe: callers serialise `plan` and world updates.
+    """
 
     def __init__(self, robot: RobotModel, world: CollisionWorld, config: PlannerConfig) -> None:
         self.robot = robot
         self.world = world
         self.config = config
+        resolution = config.edge_resolution_rad
+        self._is_valid = lambda q: not world.in_collision(q)
+        self._motion_valid = lambda a, b: world.motion_valid(a, b, resolution)
+        self._space = OmplSpace(
+            JointSpaceProblem(robot.lower_limits_rad, robot.upper_limits_rad, self._is_valid, self._motion_valid),
+            range_rad=config.range_rad)
+        self._space_revision = world.revision
+        self._history: dict[str, deque[bool]] = {}
+
+    def _sync_world(self) -> None:
+        if self.world.revision != self._space_revision:
+            self._space.forget_planners()
+            self._history.clear()
+            self._space_revision = self.world.revision
+
+    def roadmap_size(self, planner_id: str = "prm") -> int:
+        """Milestones in the kept roadmap of a roadmap planner (0 after a world change)."""
+        self._sync_world()
+        return self._space.roadmap_size(planner_id)
 
     def plan(self, problem: PlanProblem) -> PlanOutcome:
+        """Plan `problem`; expected failures come back as a status, bad input raises ValueError."""
+        t0 = time.perf_counter()
         if problem.planner_id not in PLANNERS:
             raise ValueError(f"unknown planner_id {problem.planner_id!r} (known: {', '.join(PLANNERS)})")
+        if problem.num_planning_attempts < 1:
+            raise ValueError(f"num_planning_attempts must be >= 1, got {problem.num_planning_attempts}")
+        if not (math.isfinite(problem.allowed_planning_time_s) and problem.allowed_planning_time_s > 0):
+            raise ValueError(f"allowed_planning_time must be finite and > 0, got {problem.allowed_planning_time_s}")
+        self._sync_world()
+        rng = np.random.default_rng(problem.seed)
         start = self.robot.validate_q(problem.start_rad, "start")
-        goal = self.robot.validate_q(problem.goal_rad, "goal")
-        for label, q in (("start", start), ("goal", goal)):
-            violations = self.robot.check_joint_limits(q)
-            if violations:
-                return PlanOutcome(PlanStatus.OUT_OF_BOUNDS, f"{label} is outside the joint limits: {'; '.join(violations)}",
-                                   details={"which": label, "violations": violations})
-        for label, q, status in (("start", start, PlanStatus.START_INVALID), ("goal", goal, PlanStatus.GOAL_INVALID)):
-            pairs = self.world.collisions(q)
-            if pairs:
-                named = [f"{a}|{b}" for a, b in pairs]
-                return PlanOutcome(status, f"{label} is in collision: {', '.join(named)}", details={"pairs": named})
+        is_valid, motion_valid = self._validity(problem)
 
+        violations = self.robot.check_joint_limits(start)
+        if violations:
+            return PlanOutcome(PlanStatus.OUT_OF_BOUNDS, f"start is outside the joint limits: {'; '.join(violations)}",
+                               details={"which": "start", "violations": violations})
+        pairs = self.world.collisions(start)
+        if pairs:
+            named = [f"{a}|{b}" for a, b in pairs]
+            return PlanOutcome(PlanStatus.START_INVALID, f"start is in collision: {', '.join(named)}",
+                               details={"pairs": named})
+        if not is_valid(start):
+            return PlanOutcome(PlanStatus.START_INVALID, "start: the end-effector is outside the workspace bounds",
+                               details={"which": "start", "workspace": True})
+
+        goals = self._goal_set(problem, start, is_valid, rng)
+        if isinstance(goals, PlanOutcome):
+            return goals
+
+        best: PlanOutcome | None = None
+        last_failure: PlanOutcome | None = None
+        lengths: list[float] = []
+        deadline = t0 + problem.allowed_planning_time_s
+        for _attempt in range(problem.num_planning_attempts):
+            budget = deadline - time.perf_counter()
+            if budget <= 0:
+                break
+            outcome = self._attempt(problem, start, goals, is_valid, motion_valid, budget, rng)
+            if outcome.status is PlanStatus.SUCCESS:
+                lengths.append(outcome.path_length_rad)
+                if best is None or outcome.path_length_rad < best.path_length_rad:
+                    best = outcome
+                if outcome.path is not None and len(outcome.path) == 2:
+                    break  # a straight segment cannot be beaten
+            else:
+                last_failure = outcome
+        if best is None:
+            return last_failure or PlanOutcome(PlanStatus.TIMEOUT, "no planning time left", planner_id=problem.planner_id)
+        return dataclasses.replace(best, details={**best.details, "attempt_lengths_rad": lengths})
+
+    def _validity(self, problem: PlanProblem):  # noqa: ANN202 - a pair of callables
+        if problem.workspace_min_m is None and problem.workspace_max_m is None:
+            return self._is_valid, self._motion_valid
+        if problem.workspace_min_m is None or problem.workspace_max_m is None:
+            raise ValueError("workspace bounds need both workspace_min_m and workspace_max_m")
+        low = np.asarray(problem.workspace_min_m, dtype=np.float64)
+        high = np.asarray(problem.workspace_max_m, dtype=np.float64)
+        if low.shape != (3,) or high.shape != (3,) or not np.all(np.isfinite(low)) or not np.all(np.isfinite(high)):
+            raise ValueError("workspace_min_m and workspace_max_m must be finite (3,) vectors")
+        if not np.all(low < high):
+            raise ValueError(f"workspace_min_m {low.tolist()} must be below workspace_max_m {high.tolist()} in x, y, z")
+        link = self.robot.config.end_effector_link
         resolution = self.config.edge_resolution_rad
 
-        def motion_valid(a: FloatArray, b: FloatArray) -> bool:
-            return self.world.motion_valid(a, b, resolution)
+        def inside(q: FloatArray) -> bool:
+            p = self.robot.frame_pose(q, link)[:3, 3]
+            return bool(np.all(p >= low) and np.all(p <= high))
 
         def is_valid(q: FloatArray) -> bool:
-            return not self.world.in_collision(q)
+            return inside(q) and self._is_valid(q)
 
-        result = plan_rrt_connect(
-            start, goal,
-            lower_rad=self.robot.lower_limits_rad, upper_rad=self.robot.upper_limits_rad,
-            is_valid=is_valid, motion_valid=motion_valid,
-            time_limit_s=problem.allowed_planning_time_s, range_rad=self.config.range_rad,
+        def motion_valid(a: FloatArray, b: FloatArray) -> bool:
+            return self._motion_valid(a, b) and all(inside(q) for q in interpolate_path(np.vstack([a, b]), resolution))
+
+        return is_valid, motion_valid
+
+    def _goal_set(self, problem: PlanProblem, start: FloatArray, is_valid, rng: np.random.Generator):  # noqa: ANN001,ANN202
+        """The (G, n) goal set, or a PlanOutcome saying why there is none."""
+        if (problem.goals_rad is None) == (problem.pose_goal is None):
+            raise ValueError("give exactly one of goals_rad and pose_goal")
+        if problem.pose_goal is not None:
+            return self._pose_goal_set(problem, start, is_valid, rng)
+        goals = np.asarray(problem.goals_rad, dtype=np.float64)
+        goals = goals[None, :] if goals.ndim == 1 else goals
+        if goals.ndim != 2 or goals.shape[0] == 0:
+            raise ValueError(f"goals_rad must have shape ({self.robot.dof},) or (G >= 1, {self.robot.dof})")
+        goals = np.array([self.robot.validate_q(g, "goal" if len(goals) == 1 else f"goals[{k}]")
+                          for k, g in enumerate(goals)])
+        tolerance = problem.goal_tolerance_rad
+        if not (math.isfinite(tolerance) and tolerance >= 0):
+            raise ValueError(f"goal_tolerance_rad must be finite and >= 0, got {tolerance}")
+        kept, first_problem = [], None
+        for k, goal in enumerate(goals):
+            problem_here = self._goal_problem(goal, is_valid)
+            if problem_here is None:
+                kept.append(goal)
+                continue
+            first_problem = first_problem or (k, problem_here)
+            if tolerance > 0:
+                kept.extend(self._goals_near(goal, tolerance, is_valid, rng))
+        if kept:
+            return np.array(kept)
+        k, outcome = first_problem  # type: ignore[misc]
+        return outcome
+
+    def _goal_problem(self, goal: FloatArray, is_valid) -> PlanOutcome | None:  # noqa: ANN001
+        violations = self.robot.check_joint_limits(goal)
+        if violations:
+            return PlanOutcome(PlanStatus.OUT_OF_BOUNDS, f"goal is outside the joint limits: {'; '.join(violations)}",
+                               details={"which": "goal", "violations": violations})
+        pairs = self.world.collisions(goal)
+        if pairs:
+            named = [f"{a}|{b}" for a, b in pairs]
+            return PlanOutcome(PlanStatus.GOAL_INVALID, f"goal is in collision: {', '.join(named)}",
+                               details={"pairs": named})
+        if not is_valid(goal):
+            return PlanOutcome(PlanStatus.GOAL_INVALID, "goal: the end-effector is outside the workspace bounds",
+                               details={"which": "goal", "workspace": True})
+        return None
+
+    def _goals_near(self, goal: FloatArray, tolerance: float, is_valid, rng: np.random.Generator,  # noqa: ANN001
+                    samples: int = 64) -> list[FloatArray]:
+        low = np.maximum(goal - tolerance, self.robot.lower_limits_rad)
+        high = np.minimum(goal + tolerance, self.robot.upper_limits_rad)
+        candidates = rng.uniform(low, high, size=(samples, goal.shape[0]))
+        valid = [q for q in candidates if is_valid(q)]
+        valid.sort(key=lambda q: float(np.max(np.abs(q - goal))))
+        return valid[:4]
+
+    def _pose_goal_set(self, problem: PlanProblem, start: FloatArray, is_valid, rng: np.random.Generator):  # noqa: ANN001,ANN202
+        pose = problem.pose_goal
+        assert pose is not None
+        result = solve_ik(
+            self.robot, pose.world_from_target, pose.link, rng=rng,
+            position_tolerance_m=pose.position_tolerance_m, orientation_tolerance_rad=pose.orientation_tolerance_rad,
+            is_valid=is_valid, seed_q=start, max_restarts=self.config.ik_restarts,
+            max_solutions=self.config.ik_solutions,
         )
-        if result.status is not PlanStatus.SUCCESS or result.path is None:
-            return PlanOutcome(result.status, result.detail, planning_time_s=result.planning_time_s)
+        details = {"position_error_m": result.best_position_error_m,
+                   "orientation_error_rad": result.best_orientation_error_rad, "attempts": result.attempts}
+        if result.status is IkStatus.UNREACHABLE:
+            return PlanOutcome(PlanStatus.GOAL_UNREACHABLE, f"no IK solution for {pose.link}: {result.detail}",
+                               details=details)
+        if result.status is IkStatus.GOAL_IN_COLLISION:
+            return PlanOutcome(PlanStatus.GOAL_INVALID,
+                               f"every IK solution for {pose.link} is in collision: {result.detail}",
+                               details=details | {"rejected": result.rejected_invalid})
+        return result.solutions
 
-        path = result.path
+    def _attempt(self, problem: PlanProblem, start: FloatArray, goals: FloatArray, is_valid, motion_valid,  # noqa: ANN001
+                 budget_s: float, rng: np.random.Generator) -> PlanOutcome:
+        t0 = time.perf_counter()
+        planner_id = problem.planner_id
+        direct = next((k for k, g in enumerate(goals) if motion_valid(start, g)), None)
+        if direct is not None:
+            result = PlanResult(PlanStatus.SUCCESS, np.vstack([start, goals[direct]]), "direct segment",
+                                time.perf_counter() - t0)
+            if planner_id == "auto":
+                planner_id = "direct"
+        elif planner_id == "auto":
+            planner_id, result = self._auto(start, goals, budget_s, rng)
+        elif planner_id in PLANNER_CLASSES:
+            if is_valid is self._is_valid:
+                result = self._space.solve(planner_id, start, goals, time_limit_s=budget_s)
+            else:  # workspace bounds: a roadmap checked without them cannot be reused
+                space = OmplSpace(JointSpaceProblem(self.robot.lower_limits_rad, self.robot.upper_limits_rad,
+                                                    is_valid, motion_valid), range_rad=self.config.range_rad)
+                result = space.solve(planner_id, start, goals, time_limit_s=budget_s)
+        else:
+            result = self._baseline(planner_id, start, goals, is_valid, motion_valid, budget_s, rng)
+        self._remember(planner_id, result.success)
+        if not result.success or result.path is None:
+            return PlanOutcome(result.status, result.detail, planner_id=planner_id,
+                               planning_time_s=time.perf_counter() - t0)
+        return self._finish(problem, result.path, goals, motion_valid, planner_id, time.perf_counter() - t0, rng)
+
+    def _baseline(self, planner_id: str, start: FloatArray, goals: FloatArray, is_valid, motion_valid,  # noqa: ANN001
+                  budget_s: float, rng: np.random.Generator) -> PlanResult:
+        # Single-goal baselines aim at the goal nearest the start.
+        goal = goals[int(np.argmin(np.linalg.norm(goals - start, axis=1)))]
+        common = dict(lower_rad=self.robot.lower_limits_rad, upper_rad=self.robot.upper_limits_rad,
+                      is_valid=is_valid, motion_valid=motion_valid)
+        if planner_id in ("astar", "dijkstra"):
+            return plan_lattice(start, goal, **common, resolution_rad=self.config.lattice_resolution_rad,
+                                heuristic_weight=1.0 if planner_id == "astar" else 0.0, time_limit_s=budget_s)
+        return plan_potential_field(start, goal, **common, clearance_m=self.world.clearance_m, rng=rng,
+                                    config=PotentialFieldConfig(time_limit_s=budget_s, max_escapes=10))
+
+    def auto_candidates(self, start: FloatArray, goals: FloatArray, rng: np.random.Generator) -> list[str]:
+        """The planners `auto` runs for this query, first the one it trusts most.
+
+        RRT-Connect is the default. A warm PRM roadmap on this world answers in a few graph
+        searches, so PRM joins the race when it has one and has not been failing. Clutter near
+        the start or a goal (random states within 0.1 rad of it in collision) is where
+        RRT-Connect's greedy extensions struggle, so BIT*'s informed batch search joins then.
+        Planners that failed their last three queries on this world while another succeeded
+        are left out.
+        """
+        candidates = ["rrtconnect"]
+        if self._space.roadmap_size("prm") > 0:
+            candidates.append("prm")
+        if self._cluttered(start, rng) or any(self._cluttered(g, rng) for g in goals[:3]):
+            candidates.append("bitstar")
+        failing = {p for p, h in self._history.items() if len(h) >= 3 and not any(list(h)[-3:])}
+        working = [p for p in candidates if p not in failing]
+        return working or candidates
+
+    def _auto(self, start: FloatArray, goals: FloatArray, budget_s: float,
+              rng: np.random.Generator) -> tuple[str, PlanResult]:
+        candidates = self.auto_candidates(start, goals, rng)
+        if len(candidates) == 1:
+            return candidates[0], self._space.solve(candidates[0], start, goals, time_limit_s=budget_s)
+        return race(self._space, candidates, start, goals, time_limit_s=budget_s)
+
+    def _cluttered(self, q: FloatArray, rng: np.random.Generator, probes: int = 8, spread_rad: float = 0.1) -> bool:
+        low = np.maximum(q - spread_rad, self.robot.lower_limits_rad)
+        high = np.minimum(q + spread_rad, self.robot.upper_limits_rad)
+        return any(not self._is_valid(p) for p in rng.uniform(low, high, size=(probes, q.shape[0])))
+
+    def _remember(self, planner_id: str, success: bool) -> None:
+        self._history.setdefault(planner_id, deque(maxlen=_AUTO_HISTORY)).append(success)
+
+    def _finish(self, problem: PlanProblem, path: FloatArray, goals: FloatArray, motion_valid,  # noqa: ANN001
+                planner_id: str, planning_time_s: float, rng: np.random.Generator) -> PlanOutcome:
         simplify_start = time.perf_counter()
         if problem.simplify and len(path) > 2:
-            path = shortcut_path(path, motion_valid=motion_valid, rng=np.random.default_rng(problem.seed),
-                                 iterations=self.config.shortcut_iterations)
+            path = shortcut_path(path, motion_valid=motion_valid, rng=rng, iterations=self.config.shortcut_iterations)
         simplification_time_s = time.perf_counter() - simplify_start
         # Re-validate what we return: a path is only as good as its last check.
-        if not self.world.path_valid(path, resolution):
-            return PlanOutcome(PlanStatus.TIMEOUT, "the found path failed re-validation",
-                               planning_time_s=result.planning_time_s)
+        if not all(motion_valid(a, b) for a, b in zip(path[:-1], path[1:])):
+            return PlanOutcome(PlanStatus.TIMEOUT, "the found path failed re-validation", planner_id=planner_id,
+                               planning_time_s=planning_time_s)
+        goal_index = int(np.argmin(np.max(np.abs(goals - path[-1]), axis=1)))
         return PlanOutcome(
-            PlanStatus.SUCCESS, "ok", path=path,
-            planning_time_s=result.planning_time_s,
+            PlanStatus.SUCCESS, "ok", path=path, planner_id=planner_id,
+            planning_time_s=planning_time_s,
             simplification_time_s=simplification_time_s,
             path_length_rad=path_length_rad(path),
             max_joint_step_rad=max_joint_step_rad(path),
-            min_clearance_m=self._sampled_clearance_m(path),
+            min_clearance_m=self._sampled_clearance_m(path) if self.config.report_clearance else float("inf"),
+            goal_index=goal_index,
         )
 
     def _sampled_clearance_m(self, path: FloatArray) -> float:
@@ -124,3 +385,4 @@ class MotionPlanner:
         if len(dense) > CLEARANCE_SAMPLES:
             dense = dense[np.linspace(0, len(dense) - 1, CLEARANCE_SAMPLES).round().astype(int)]
         return min(self.world.clearance_m(q) for q in dense)
+

@@ -11,7 +11,8 @@ import pytest
 from robonav.pipeline.camera import CameraIntrinsics
 from robonav.pipeline.messages import (ALL_MESSAGES, ContactsRequest, ContactsResponse, ErrorReply, ExecuteRequest,
                                        ExecuteResponse, ExecutorStatus, JointState, Occupancy, PlanRequest,
-                                       PlanResponse, PointCloud, Setpoint, StopRequest, StopResponse, decode_reply)
+                                       PlanResponse, PointCloud, SceneObjectSpec, SceneObjectState, SceneRequest,
+                                       SceneResponse, Setpoint, StopRequest, StopResponse, decode_reply)
 from robonav.pipeline.wire import SCHEMA_VERSION, ErrorCode, Message, ProtocolError
 
 RNG = np.random.default_rng(7)
@@ -39,6 +40,24 @@ EXAMPLES: list[Message] = [
     ContactsRequest(reset=True),
     ContactsResponse(contact_count=2, pairs=("panda_hand|box",), min_distance_m=0.01),
     ErrorReply(code="NO_SOLUTION", message="no path in 1.0 s", details={"time_s": 1.0}),
+    SceneRequest(operation="add", objects=(
+        SceneObjectSpec("box", "box", (0.5, 0.0, 0.2), (0.0, 0.0, 0.0, 1.0), size_m=(0.1, 0.2, 0.3)),
+        SceneObjectSpec("tet", "mesh", (0.4, 0.1, 0.0), vertices_m=RNG.normal(size=(4, 3)),
+                        triangles=np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]]), frame_id="world"),
+    ), request_id="s1"),
+    SceneRequest(operation="attach", names=("box",), link="panda_hand", touch_links=("panda_leftfinger",),
+                 joint_names=NAMES, joint_positions=RNG.normal(size=7)),
+    SceneResponse(revision=3, objects=(
+        SceneObjectState("box", "box", (0.5, 0.0, 0.2), (0.0, 0.0, 0.0, 1.0), size_m=(0.1, 0.2, 0.3)),
+        SceneObjectState("can", "cylinder", (0.0, 0.0, 0.1), (0.0, 0.0, 0.0, 1.0), frame_id="panda_hand",
+                         attached_link="panda_hand", touch_links=("panda_leftfinger",), radius_m=0.03, length_m=0.1),
+    ), request_id="s1"),
+    PlanRequest(goal_set=RNG.normal(size=(3, 7)), goal_tolerance_rad=0.01, num_planning_attempts=2, planner_id="auto"),
+    PlanRequest(goal_position_m=np.array([0.4, 0.1, 0.5]), goal_quat_xyzw=np.array([1.0, 0.0, 0.0, 0.0]),
+                goal_link="panda_hand", position_tolerance_m=0.002, orientation_tolerance_rad=0.05,
+                workspace_min_m=np.array([-1.0, -1.0, 0.0]), workspace_max_m=np.array([1.0, 1.0, 1.5])),
+    PlanResponse(joint_names=NAMES, path=RNG.normal(size=(2, 7)), planner_id="direct", goal_index=2,
+                 goal_positions=RNG.normal(size=7)),
 ]
 
 
@@ -92,7 +111,13 @@ def _plan_obj(**overrides: object) -> bytes:
         (msgpack.packb({"goal_positions": 1}), ErrorCode.MALFORMED_MESSAGE, "missing schema version"),
         (_plan_obj(v=2), ErrorCode.UNSUPPORTED_VERSION, "schema version 2"),
         (_plan_obj(planer_id="x"), ErrorCode.MALFORMED_MESSAGE, "unknown key 'planer_id'"),
-        (msgpack.packb({"v": 1}), ErrorCode.MALFORMED_MESSAGE, "missing key 'goal_positions'"),
+        (msgpack.packb({"v": 1}), ErrorCode.INVALID_REQUEST, "exactly one of goal_positions, goal_set, goal_position_m"),
+        (_plan_obj(goal_position_m={"dtype": "<f8", "shape": [3], "data": np.zeros(3).tobytes()}),
+         ErrorCode.INVALID_REQUEST, "got goal_positions, goal_position_m"),
+        (msgpack.packb({"v": 1, "goal_set": {"dtype": "<f8", "shape": [1, 7], "data": np.zeros(7).tobytes()},
+                        "goal_quat_xyzw": {"dtype": "<f8", "shape": [4], "data": np.array([0, 0, 0, 1.0]).tobytes()}}),
+         ErrorCode.INVALID_REQUEST, "'goal_quat_xyzw' belongs to a Cartesian goal"),
+        (_plan_obj(num_planning_attempts=0), ErrorCode.INVALID_REQUEST, "num_planning_attempts must be >= 1"),
         (_plan_obj(goal_positions=[0.0] * 7), ErrorCode.MALFORMED_MESSAGE, "array map"),
         (_plan_obj(goal_positions={"dtype": "<f8", "shape": [7], "data": b"\x00" * 8}), ErrorCode.MALFORMED_MESSAGE, "data bytes"),
         (_plan_obj(goal_positions={"dtype": "<f8", "shape": [7, 1], "data": np.zeros(7).tobytes()}), ErrorCode.INVALID_REQUEST, "shape"),

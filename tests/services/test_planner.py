@@ -17,7 +17,9 @@ import octomap
 import pytest
 import zenoh
 
-from robonav.pipeline.messages import ErrorReply, JointState, Occupancy, PlanResponse
+from robonav.pipeline.messages import (ErrorReply, JointState, Occupancy, PlanRequest, PlanResponse, SceneObjectSpec,
+                                       SceneRequest, SceneResponse)
+from robonav.pipeline.planning.ik import pose_error
 from robonav.services.client import RobonavClient
 from robonav.services.common import declare_latched_publisher, open_session
 from robonav.services.config import ZenohConfig, load_config
@@ -166,3 +168,47 @@ def test_a_late_planner_gets_the_last_published_map(tmp_path: Path) -> None:
     finally:
         for s in reversed(sessions):
             s.close()
+
+
+def test_goal_forms_and_the_planning_scene_over_zenoh(planner: tuple[PlannerNode, zenoh.Session, RobonavClient]) -> None:
+    node, session, client = planner
+    _publish_until(session, client.keys.occupancy, _wall_map(-0.9, time.time()).to_wire(),
+                   lambda: node._map_received_monotonic is not None)
+
+    # A Cartesian goal: the hand where it is at GOAL, reached within the default 1 mm / 0.01 rad.
+    target = node.robot.frame_pose(GOAL, "panda_hand")
+    quat_xyzw = _quat_xyzw(target[:3, :3])
+    reply = client.plan_to_pose(target[:3, 3], quat_xyzw, start_positions=HOME, seed=1)
+    assert isinstance(reply, PlanResponse), reply
+    position_error_m, angle_error_rad = pose_error(node.robot, reply.path[-1], target, "panda_hand")
+    assert position_error_m <= 1e-3 and angle_error_rad <= 0.01
+    np.testing.assert_array_equal(reply.goal_positions, reply.path[-1])
+
+    reply = client.plan_to_pose([3.0, 0.0, 0.5], start_positions=HOME)
+    assert isinstance(reply, ErrorReply) and reply.code == "GOAL_UNREACHABLE", reply
+    reply = client.plan_to_pose([0.4, 0.0, 0.5], goal_link="no_such_link", start_positions=HOME)
+    assert isinstance(reply, ErrorReply) and reply.code == "INVALID_REQUEST" and "no_such_link" in reply.message
+
+    # A goal set: the reply names the goal it reached.
+    reply = client.plan_request(PlanRequest(goal_set=np.array([GOAL, HOME + 0.1]), start_positions=HOME, seed=2))
+    assert isinstance(reply, PlanResponse), reply
+    np.testing.assert_array_equal(reply.path[-1], [GOAL, HOME + 0.1][reply.goal_index])
+
+    # A box added through planner/scene is planned around, and a start inside it is refused.
+    hand = node.robot.frame_pose(HOME, "panda_hand")[:3, 3]
+    scene = client.scene(SceneRequest(operation="add", objects=(
+        SceneObjectSpec("crate", "box", tuple(hand), (0.0, 0.0, 0.0, 1.0), size_m=(0.1, 0.1, 0.1)),)))
+    assert isinstance(scene, SceneResponse) and [o.name for o in scene.objects] == ["crate"]
+    reply = client.plan(GOAL, start_positions=HOME)
+    assert isinstance(reply, ErrorReply) and reply.code == "START_IN_COLLISION"
+    assert any("crate" in pair for pair in reply.details["pairs"]), reply.details
+    scene = client.scene(SceneRequest(operation="remove", names=("crate",)))
+    assert isinstance(scene, SceneResponse) and scene.objects == ()
+    assert isinstance(client.plan(GOAL, start_positions=HOME, seed=3), PlanResponse)
+
+
+def _quat_xyzw(rotation: np.ndarray) -> np.ndarray:
+    import pinocchio as pin
+
+    q = pin.Quaternion(rotation)
+    return np.array([q.x, q.y, q.z, q.w])

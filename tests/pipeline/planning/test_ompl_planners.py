@@ -1,4 +1,4 @@
-"""plan_rrt_connect on a 2-D point robot and on the Panda with a real CollisionWorld."""
+"""OMPL planners on a 2-D point robot and on the Panda with a real CollisionWorld."""
 
 from __future__ import annotations
 
@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from robonav.pipeline.collision import CollisionWorld
-from robonav.pipeline.planning.rrt_connect import plan_rrt_connect, seed_ompl_once
+from robonav.pipeline.planning.metrics import path_length_rad
+from robonav.pipeline.planning.ompl_planners import (PLANNER_CLASSES, JointSpaceProblem, OmplSpace, plan_ompl, race,
+                                                       seed_ompl_once)
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.scene import SceneObject
@@ -20,14 +22,15 @@ def _seed() -> None:
     seed_ompl_once(0)
 
 
-def _plan(robot, start=START, goal=GOAL, time_limit_s=2.0):
-    return plan_rrt_connect(start, goal, lower_rad=robot.lower, upper_rad=robot.upper, is_valid=robot.is_valid,
+def _plan(robot, start=START, goal=GOAL, time_limit_s=2.0, planner_id="rrtconnect"):
+    return plan_ompl(planner_id, start, goal, lower_rad=robot.lower, upper_rad=robot.upper, is_valid=robot.is_valid,
                             motion_valid=robot.motion_valid, time_limit_s=time_limit_s)
 
 
-def test_path_around_wall(make_point_robot) -> None:
+@pytest.mark.parametrize("planner_id", sorted(PLANNER_CLASSES))
+def test_path_around_wall(make_point_robot, planner_id: str) -> None:
     robot = make_point_robot([WALL])
-    result = _plan(robot)
+    result = _plan(robot, time_limit_s=0.5, planner_id=planner_id)
     assert result.status is PlanStatus.SUCCESS, result.detail
     path = result.path
     assert path.shape[1] == 2 and path.shape[0] >= 3  # the wall forbids the direct segment
@@ -36,7 +39,7 @@ def test_path_around_wall(make_point_robot) -> None:
     assert all(robot.motion_valid(a, b) for a, b in zip(path[:-1], path[1:]))
     assert np.all(path >= 0.0) and np.all(path <= 1.0)
     assert np.max(path[:, 1]) > 0.8  # it went over the wall
-    assert 0 < result.planning_time_s < 2.0
+    assert 0 < result.planning_time_s < 1.5
 
 
 def test_direct_segment_when_free(make_point_robot) -> None:
@@ -68,10 +71,12 @@ def test_bad_input_raises(make_point_robot) -> None:
         _plan(robot, goal=np.zeros(3))
     with pytest.raises(ValueError, match=r"q_start\[1\] must be finite"):
         _plan(robot, start=np.array([0.1, np.nan]))
+    with pytest.raises(ValueError, match="unknown planner_id 'nope'"):
+        _plan(robot, planner_id="nope")
     with pytest.raises(ValueError, match="time_limit_s"):
         _plan(robot, time_limit_s=0.0)
     with pytest.raises(ValueError, match=r"lower_rad\[0\]"):
-        plan_rrt_connect(START, GOAL, lower_rad=np.ones(2), upper_rad=np.ones(2), is_valid=robot.is_valid,
+        plan_ompl("rrtconnect", START, GOAL, lower_rad=np.ones(2), upper_rad=np.ones(2), is_valid=robot.is_valid,
                          motion_valid=robot.motion_valid, time_limit_s=1.0)
 
 
@@ -89,8 +94,8 @@ def test_panda_around_block(panda: RobotModel) -> None:
     start[0], goal[0] = -1.0, 1.0
     resolution_rad = 0.02
     assert not world.motion_valid(start, goal, resolution_rad)
-    result = plan_rrt_connect(
-        start, goal, lower_rad=panda.lower_limits_rad, upper_rad=panda.upper_limits_rad,
+    result = plan_ompl(
+        "rrtconnect", start, goal, lower_rad=panda.lower_limits_rad, upper_rad=panda.upper_limits_rad,
         is_valid=lambda q: not world.in_collision(q),
         motion_valid=lambda a, b: world.motion_valid(a, b, resolution_rad),
         time_limit_s=5.0,
@@ -100,3 +105,45 @@ def test_panda_around_block(panda: RobotModel) -> None:
     np.testing.assert_array_equal(result.path[-1], goal)
     assert world.path_valid(result.path, resolution_rad)
     assert all(panda.check_joint_limits(q) == [] for q in result.path)
+
+
+def _space(robot) -> OmplSpace:
+    return OmplSpace(JointSpaceProblem(robot.lower, robot.upper, robot.is_valid, robot.motion_valid))
+
+
+def test_rrtstar_is_not_longer_than_rrtconnect(make_point_robot) -> None:
+    space = _space(make_point_robot([WALL]))
+    goals = GOAL[None]
+    connect = space.solve("rrtconnect", START, goals, time_limit_s=1.0)
+    star = space.solve("rrtstar", START, goals, time_limit_s=1.0)
+    assert connect.success and star.success
+    assert path_length_rad(star.path) <= path_length_rad(connect.path) + 1e-9
+
+
+def test_prm_reuses_its_roadmap_until_told_to_forget(make_point_robot) -> None:
+    space = _space(make_point_robot([WALL]))
+    first = space.solve("prm", START, GOAL[None], time_limit_s=0.3)
+    size = space.roadmap_size("prm")
+    assert first.success and size > 0
+    second = space.solve("prm", np.array([0.1, 0.2]), np.array([[0.9, 0.2]]), time_limit_s=0.3)
+    assert second.success
+    assert space.roadmap_size("prm") >= size  # grown from the kept roadmap, not rebuilt
+    space.forget_planners()
+    assert space.roadmap_size("prm") == 0
+
+
+def test_goal_set_ends_at_one_of_the_goals_and_drops_invalid_ones(make_point_robot) -> None:
+    robot = make_point_robot([WALL])
+    goals = np.array([[0.5, 0.5], [0.9, 0.1], [0.9, 0.9]])  # the first is inside the wall
+    result = _plan(robot, goal=goals)
+    assert result.success
+    assert any(np.array_equal(result.path[-1], g) for g in goals[1:])
+    assert _plan(robot, goal=goals[:1]).status is PlanStatus.GOAL_INVALID
+
+
+def test_race_returns_a_winner_and_stops_the_others(make_point_robot) -> None:
+    space = _space(make_point_robot([WALL]))
+    winner, result = race(space, ["rrtconnect", "prmstar"], START, GOAL[None], time_limit_s=5.0)
+    assert result.success and winner in ("rrtconnect", "prmstar")
+    # PRM* alone would use the whole 5 s; the win stopped it long before.
+    assert result.planning_time_s < 2.0

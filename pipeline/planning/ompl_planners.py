@@ -1,0 +1,419 @@
+"""OMPL's sampling-based planners in a box-bounded joint space, behind one call.
+
+Every planner only sees two callables (state validity and edge validity), so it runs unchanged
+on the Panda (with `CollisionWorld.in_collision` / `motion_valid`) and on a 2-D point robot in
+tests. The edge check is one Python call per tree edge (an OMPL `MotionValidator`), not one per
+interpolated state, because the collision world checks a whole edge in one batched call.
+
+Planners that stop at the first solution (`rrtconnect`, `rrt`, `prm`) get a cost threshold of
+infinity; the asymptotically optimal ones (`rrtstar`, `prmstar`, `bitstar`, `aorrtc`) use the
+whole time budget to shorten their path, as they do in MoveIt.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import multiprocessing.connection
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from ompl import base as ob
+from ompl import geometric as og
+from ompl import util as ou
+
+from robonav.pipeline.planning.result import PlanResult, PlanStatus
+from robonav.pipeline.transforms import FloatArray
+
+PLANNER_CLASSES: dict[str, Callable[[ob.SpaceInformation], ob.Planner]] = {
+    "rrtconnect": og.RRTConnect,
+    "rrt": og.RRT,
+    "rrtstar": og.RRTstar,
+    "prm": og.PRM,
+    "prmstar": og.PRMstar,
+    "bitstar": og.BITstar,
+    "aorrtc": og.AORRTC,
+}
+"""OMPL planners by the `planner_id` a request names."""
+OPTIMIZING = frozenset({"rrtstar", "prmstar", "bitstar", "aorrtc"})
+"""Planners that keep improving their path until the time budget ends."""
+ROADMAP = frozenset({"prm", "prmstar"})
+"""Multi-query planners whose roadmap is kept between queries on an unchanged scene."""
+_RANGED = frozenset({"rrtconnect", "rrt", "rrtstar"})
+
+_ompl_seeded = False
+
+
+def seed_ompl_once(seed: int) -> bool:
+    """Seed OMPL's global RNG on the first call in this process; later calls do nothing.
+
+    OMPL derives every sampler's seed from one process-wide seed that can only take effect
+    before the first sampler exists (a later `RNG.setSeed` just logs "Changing seed now will
+    not lead to deterministic sampling"), so a planner process seeds once at start-up.
+    OMPL rejects seed 0 (it logs a warning and uses 1), so `seed` is passed on as `seed + 1`.
+
+    Args:
+        seed: 0 <= seed < 2**32 - 1.
+
+    Returns:
+        True when this call set the seed.
+    """
+    global _ompl_seeded
+    if not 0 <= seed < 2**32 - 1:
+        raise ValueError(f"seed must be in [0, 2**32 - 1), got {seed}")
+    if _ompl_seeded:
+        return False
+    ou.RNG.setSeed(int(seed) + 1)
+    _ompl_seeded = True
+    return True
+
+
+@dataclass(frozen=True)
+class JointSpaceProblem:
+    """A query for an OMPL planner: bounds, callables, start and a goal set.
+
+    Attributes:
+        lower_rad: (n,) lower joint bounds [rad].
+        upper_rad: (n,) upper joint bounds [rad], each > the lower bound.
+        is_valid: State validity, called with an (n,) array.
+        motion_valid: Validity of the straight segment between two (n,) states, both ends
+            included; OMPL calls it once per tree edge.
+    """
+
+    lower_rad: FloatArray
+    upper_rad: FloatArray
+    is_valid: Callable[[FloatArray], bool]
+    motion_valid: Callable[[FloatArray, FloatArray], bool]
+
+
+class _EdgeValidator(ob.MotionValidator):
+    """Checks a whole tree edge with one Python call instead of OMPL's per-state discretisation."""
+
+    def __init__(self, info: ob.SpaceInformation, check: Callable[[ob.State, ob.State], bool]) -> None:
+        super().__init__(info)
+        self._check = check
+
+    def checkMotion(self, a: ob.State, b: ob.State) -> bool:  # noqa: N802 (OMPL's name)
+        return self._check(a, b)
+
+
+class OmplSpace:
+    """An OMPL state space with validity callbacks, and planners kept for reuse.
+
+    Roadmap planners (PRM, PRM*) built here keep their roadmap between queries until
+    `forget_planners` is called, which the owner does whenever the collision world changes.
+    Not thread-safe for concurrent queries of the same planner.
+    """
+
+    def __init__(self, problem: JointSpaceProblem, *, range_rad: float = 0.0) -> None:
+        lower = _vector(problem.lower_rad, "lower_rad")
+        n = lower.shape[0]
+        upper = _vector(problem.upper_rad, "upper_rad", n)
+        for i in range(n):
+            if not lower[i] < upper[i]:
+                raise ValueError(f"lower_rad[{i}] = {lower[i]} must be < upper_rad[{i}] = {upper[i]}")
+        if not (math.isfinite(range_rad) and range_rad >= 0):
+            raise ValueError(f"range_rad must be finite and >= 0, got {range_rad}")
+        ou.setLogLevel(ou.LogLevel.LOG_WARN)  # OMPL logs every solve at INFO level otherwise
+        self.dof = n
+        self.lower_rad, self.upper_rad = lower, upper
+        self.problem = problem
+        self.range_rad = float(range_rad)
+        self.space = ob.RealVectorStateSpace(n)
+        bounds = ob.RealVectorBounds(n)
+        for i in range(n):
+            bounds.setLow(i, float(lower[i]))
+            bounds.setHigh(i, float(upper[i]))
+        self.space.setBounds(bounds)
+        self.info = ob.SpaceInformation(self.space)
+        is_valid, motion_valid = problem.is_valid, problem.motion_valid
+        self.info.setStateValidityChecker(lambda state: bool(is_valid(self.to_array(state))))
+        # OMPL holds a raw reference to the validator: it must live as long as this object.
+        self._validator = _EdgeValidator(
+            self.info, lambda a, b: bool(motion_valid(self.to_array(a), self.to_array(b))))
+        self.info.setMotionValidator(self._validator)
+        self.info.setup()
+        self._planners: dict[str, ob.Planner] = {}
+        self._lock = threading.Lock()
+
+    def to_array(self, state: ob.State) -> FloatArray:
+        return np.array([state[i] for i in range(self.dof)], dtype=np.float64)
+
+    def _state(self, q: FloatArray) -> ob.State:
+        state = self.space.allocState()
+        for i in range(self.dof):
+            state[i] = float(q[i])
+        return state
+
+    def planner(self, planner_id: str) -> ob.Planner:
+        """The planner for `planner_id`; roadmap planners are created once and reused."""
+        if planner_id not in PLANNER_CLASSES:
+            raise ValueError(f"unknown planner_id {planner_id!r} (known: {', '.join(PLANNER_CLASSES)})")
+        with self._lock:
+            if planner_id in ROADMAP and planner_id in self._planners:
+                planner = self._planners[planner_id]
+                planner.clearQuery()
+                return planner
+            planner = PLANNER_CLASSES[planner_id](self.info)
+            if planner_id in _RANGED and self.range_rad > 0:
+                planner.setRange(self.range_rad)
+            if planner_id in ROADMAP:
+                self._planners[planner_id] = planner
+            return planner
+
+    def roadmap_size(self, planner_id: str) -> int:
+        """Milestones in the kept roadmap of `planner_id` (0 when there is none)."""
+        planner = self._planners.get(planner_id)
+        return int(planner.milestoneCount()) if planner is not None else 0
+
+    def forget_planners(self) -> None:
+        """Drop kept roadmaps: their edges were checked against a world that has changed."""
+        with self._lock:
+            self._planners.clear()
+
+    def solve(
+        self,
+        planner_id: str,
+        start_rad: FloatArray,
+        goals_rad: FloatArray,
+        *,
+        time_limit_s: float,
+        stop: Callable[[], bool] | None = None,
+    ) -> PlanResult:
+        """Search from `start_rad` to any of `goals_rad` with one OMPL planner.
+
+        Start and goals must already be valid and inside the bounds (the caller checks them
+        with better error messages). Only an exact solution is a SUCCESS.
+
+        Args:
+            planner_id: A key of `PLANNER_CLASSES`.
+            start_rad: (n,) start [rad].
+            goals_rad: (G, n) goal set [rad], G >= 1; the path ends exactly at one of them.
+            time_limit_s: Budget [s], > 0.
+            stop: Polled by the planner; when it returns True the search ends early.
+
+        Returns:
+            A `PlanResult` whose path is (K, n), unsimplified, or TIMEOUT.
+        """
+        t0 = time.perf_counter()
+        start = _vector(start_rad, "start_rad", self.dof)
+        goals = np.asarray(goals_rad, dtype=np.float64)
+        if goals.ndim != 2 or goals.shape[0] == 0 or goals.shape[1] != self.dof:
+            raise ValueError(f"goals_rad must have shape (G >= 1, {self.dof}), got {goals.shape}")
+        if not (math.isfinite(time_limit_s) and time_limit_s > 0):
+            raise ValueError(f"time_limit_s must be finite and > 0, got {time_limit_s}")
+        planner = self.planner(planner_id)
+        definition = ob.ProblemDefinition(self.info)
+        definition.addStartState(self._state(start))
+        goal_states = ob.GoalStates(self.info)
+        for g in goals:
+            goal_states.addState(self._state(g))
+        definition.setGoal(goal_states)
+        objective = ob.PathLengthOptimizationObjective(self.info)
+        if planner_id not in OPTIMIZING:
+            objective.setCostThreshold(ob.Cost(math.inf))  # the first solution satisfies it
+        definition.setOptimizationObjective(objective)
+        planner.setProblemDefinition(definition)
+        planner.setup()
+        timed = ob.timedPlannerTerminationCondition(float(time_limit_s))
+        if stop is None:
+            status = planner.solve(timed)
+        else:
+            status = planner.solve(ob.plannerOrTerminationCondition(
+                timed, ob.PlannerTerminationCondition(stop)))
+        elapsed = time.perf_counter() - t0
+        if status.getStatus() != ob.PlannerStatus.EXACT_SOLUTION or not definition.hasExactSolution():
+            return PlanResult(PlanStatus.TIMEOUT, None,
+                              f"{planner_id}: no exact solution within {time_limit_s:.3f} s (OMPL: {status})", elapsed)
+        solution = definition.getSolutionPath()
+        path = np.array([self.to_array(solution.getState(k)) for k in range(solution.getStateCount())])
+        # OMPL copies the states; pin the ends to the exact inputs.
+        path[0] = start
+        path[-1] = goals[int(np.argmin(np.max(np.abs(goals - path[-1]), axis=1)))]
+        return PlanResult(PlanStatus.SUCCESS, path, f"{planner_id}: {path.shape[0]} waypoints", elapsed)
+
+
+def race(
+    space: OmplSpace,
+    planner_ids: Sequence[str],
+    start_rad: FloatArray,
+    goals_rad: FloatArray,
+    *,
+    time_limit_s: float,
+) -> tuple[str, PlanResult]:
+    """Run several planners at once on the same query, one forked process each; the first
+    exact solution wins and the other processes are killed.
+
+    Processes, not threads: OMPL's Python bindings hold the GIL for the whole `solve`, so
+    threads would take turns rather than run side by side (and a second thread starting
+    while the first is inside `solve` was seen to deadlock). A forked child shares the
+    parent's collision world copy-on-write and costs a few milliseconds to start. Where
+    `fork` is unavailable the planners run one after another.
+
+    Returns:
+        The winning planner id and its result; when every planner failed, the first id and
+        its TIMEOUT result.
+    """
+    if not planner_ids:
+        raise ValueError("race needs at least one planner_id")
+    t0 = time.perf_counter()
+    if "fork" not in multiprocessing.get_all_start_methods():
+        for planner_id in planner_ids:
+            result = space.solve(planner_id, start_rad, goals_rad, time_limit_s=time_limit_s)
+            if result.success:
+                return planner_id, result
+        return planner_ids[0], PlanResult(PlanStatus.TIMEOUT, None, "race: no planner solved it", time.perf_counter() - t0)
+    context = multiprocessing.get_context("fork")
+    children: dict[Any, tuple[str, Any]] = {}
+    for planner_id in planner_ids:
+        receiver, sender = context.Pipe(duplex=False)
+        process = context.Process(target=_race_child, args=(space, planner_id, start_rad, goals_rad, time_limit_s, sender),
+                                  daemon=True, name=f"plan-{planner_id}")
+        process.start()
+        sender.close()
+        children[receiver] = (planner_id, process)
+    results: dict[str, PlanResult] = {}
+    winner: str | None = None
+    deadline = time.monotonic() + time_limit_s + 5.0  # a child that hangs past its budget is abandoned
+    pending = set(children)
+    while pending and winner is None:
+        ready = multiprocessing.connection.wait(list(pending), timeout=max(deadline - time.monotonic(), 0.0))
+        if not ready:
+            break
+        for receiver in ready:
+            pending.discard(receiver)
+            planner_id = children[receiver][0]
+            try:
+                status, path, detail = receiver.recv()
+            except (EOFError, OSError):
+                status, path, detail = PlanStatus.TIMEOUT.value, None, f"{planner_id}: the planning process died"
+            results[planner_id] = PlanResult(PlanStatus(status), path, detail, time.perf_counter() - t0)
+            if results[planner_id].success and winner is None:
+                winner = planner_id
+    for receiver, (_, process) in children.items():
+        if process.is_alive():
+            process.kill()
+        process.join(timeout=1.0)
+        receiver.close()
+    elapsed = time.perf_counter() - t0
+    if winner is not None:
+        result = results[winner]
+        return winner, PlanResult(result.status, result.path, result.detail, elapsed)
+    first = results.get(planner_ids[0])
+    detail = "; ".join(r.detail for r in results.values()) or "race: no planner answered"
+    return planner_ids[0], PlanResult(first.status if first else PlanStatus.TIMEOUT, None, detail, elapsed)
+
+
+def _race_child(space: OmplSpace, planner_id: str, start_rad: FloatArray, goals_rad: FloatArray,
+                time_limit_s: float, sender: Any) -> None:
+    try:
+        result = space.solve(planner_id, start_rad, goals_rad, time_limit_s=time_limit_s)
+        sender.send((result.status.value, result.path, result.detail))
+    except Exception as exc:  # reported to the parent as this planner's failure
+        sender.send((PlanStatus.TIMEOUT.value, None, f"{planner_id}: {type(exc).__name__}: {exc}"))
+    finally:
+        sender.close()
+
+
+def plan_ompl(
+    planner_id: str,
+    q_start: FloatArray,
+    q_goals: FloatArray,
+    *,
+    lower_rad: FloatArray,
+    upper_rad: FloatArray,
+    is_valid: Callable[[FloatArray], bool],
+    motion_valid: Callable[[FloatArray, FloatArray], bool],
+    time_limit_s: float,
+    range_rad: float = 0.0,
+) -> PlanResult:
+    """Plan a joint-space path from `q_start` to `q_goals` with one OMPL planner, in one call.
+
+    Bounds and start/goal validity are checked first (no OMPL call then); invalid goals are
+    dropped from the set, and only when all are invalid is it GOAL_INVALID. A straight segment
+    to a goal that passes `motion_valid` is returned directly. For repeated queries on one
+    world, keep an `OmplSpace` instead (roadmaps are reused).
+
+    Args:
+        planner_id: A key of `PLANNER_CLASSES`.
+        q_start: (n,) start configuration [rad].
+        q_goals: (n,) goal or (G, n) goal set [rad].
+        lower_rad: (n,) lower joint bounds [rad].
+        upper_rad: (n,) upper joint bounds [rad], each > the lower bound.
+        is_valid: State validity, called with an (n,) array.
+        motion_valid: Validity of the straight segment between two (n,) states.
+        time_limit_s: Budget for the OMPL search [s].
+        range_rad: Longest tree extension (Euclidean, joint space) [rad]; 0 lets OMPL choose.
+
+    Returns:
+        A `PlanResult`; on SUCCESS its path is (K, n), K >= 2, from `q_start` to a goal.
+
+    Raises:
+        ValueError: wrong shapes, non-finite values, empty bounds, an unknown planner or a
+            non-positive budget.
+    """
+    t0 = time.perf_counter()
+    if planner_id not in PLANNER_CLASSES:
+        raise ValueError(f"unknown planner_id {planner_id!r} (known: {', '.join(PLANNER_CLASSES)})")
+    lower = _vector(lower_rad, "lower_rad")
+    n = lower.shape[0]
+    upper = _vector(upper_rad, "upper_rad", n)
+    start = _vector(q_start, "q_start", n)
+    goals = np.asarray(q_goals, dtype=np.float64)
+    goals = goals[None, :] if goals.ndim == 1 else goals
+    if goals.ndim != 2 or goals.shape[0] == 0:
+        raise ValueError(f"q_goals must have shape ({n},) or (G >= 1, {n}), got {np.shape(q_goals)}")
+    for k, goal in enumerate(goals):
+        _vector(goal, "q_goal" if len(goals) == 1 else f"q_goals[{k}]", n)
+    for i in range(n):
+        if not lower[i] < upper[i]:
+            raise ValueError(f"lower_rad[{i}] = {lower[i]} must be < upper_rad[{i}] = {upper[i]}")
+    if not (math.isfinite(time_limit_s) and time_limit_s > 0):
+        raise ValueError(f"time_limit_s must be finite and > 0, got {time_limit_s}")
+
+    def done(status: PlanStatus, detail: str, path: FloatArray | None = None) -> PlanResult:
+        return PlanResult(status, path, detail, time.perf_counter() - t0)
+
+    problem = bounds_violation(start, lower, upper)
+    if problem:
+        return done(PlanStatus.OUT_OF_BOUNDS, f"start: {problem}")
+    problems = [bounds_violation(g, lower, upper) for g in goals]
+    if all(problems):
+        return done(PlanStatus.OUT_OF_BOUNDS, f"goal: {problems[0]}")
+    goals = goals[[not p for p in problems]]
+    if not is_valid(start):
+        return done(PlanStatus.START_INVALID, "start state is invalid (e.g. in collision)")
+    goals = goals[[bool(is_valid(g)) for g in goals]]
+    if goals.shape[0] == 0:
+        return done(PlanStatus.GOAL_INVALID, "goal state is invalid (e.g. in collision)")
+    for goal in goals:
+        if motion_valid(start, goal):
+            return done(PlanStatus.SUCCESS, "direct segment from start to goal is valid", np.vstack([start, goal]))
+    space = OmplSpace(JointSpaceProblem(lower, upper, is_valid, motion_valid), range_rad=range_rad)
+    result = space.solve(planner_id, start, goals, time_limit_s=max(time_limit_s - (time.perf_counter() - t0), 1e-3))
+    return done(result.status, result.detail, result.path)
+
+
+def bounds_violation(q: FloatArray, lower: FloatArray, upper: FloatArray) -> str:
+    """A sentence naming the first joint of `q` outside [lower, upper], or "" when inside."""
+    for i in range(q.shape[0]):
+        if q[i] < lower[i]:
+            return f"joint {i} = {q[i]:.6g} is below its lower bound {lower[i]:.6g}"
+        if q[i] > upper[i]:
+            return f"joint {i} = {q[i]:.6g} is above its upper bound {upper[i]:.6g}"
+    return ""
+
+
+def _vector(value: FloatArray, label: str, n: int | None = None) -> FloatArray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim != 1 or arr.shape[0] == 0 or (n is not None and arr.shape[0] != n):
+        expected = f"({n},)" if n is not None else "(n >= 1,)"
+        raise ValueError(f"{label} must have shape {expected}, got shape {arr.shape}")
+    bad = np.flatnonzero(~np.isfinite(arr))
+    if bad.size:
+        raise ValueError(f"{label}[{int(bad[0])}] must be finite, got {arr[bad[0]]}")
+    return arr

@@ -1,0 +1,153 @@
+"""MotionPlanner on the Panda: goal forms, planners, request parameters, and the statuses they produce."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robonav.pipeline.collision import CollisionWorld
+from robonav.pipeline.planning.config import PlannerConfig
+from robonav.pipeline.planning.ik import pose_error
+from robonav.pipeline.planning.motion_planner import PLANNERS, MotionPlanner, PlanProblem, PoseGoal
+from robonav.pipeline.planning.ompl_planners import seed_ompl_once
+from robonav.pipeline.planning.result import PlanStatus
+from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.scene import SceneObject
+
+RESOLUTION_RAD = 0.02
+BLOCK = SceneObject("block", "box", (0.307, 0.0, 0.44), size_m=(0.08, 0.08, 0.08))
+
+
+@pytest.fixture(scope="module")
+def setup(panda: RobotModel) -> tuple[MotionPlanner, np.ndarray, np.ndarray]:
+    seed_ompl_once(0)
+    world = CollisionWorld(panda, padding_m=0.01)
+    world.set_objects([BLOCK])
+    planner = MotionPlanner(panda, world, PlannerConfig(edge_resolution_rad=RESOLUTION_RAD, range_rad=1.0))
+    start, goal = panda.home_position_rad.copy(), panda.home_position_rad.copy()
+    start[0], goal[0] = -1.0, 1.0
+    assert not world.motion_valid(start, goal, RESOLUTION_RAD)  # the block is in the way
+    return planner, start, goal
+
+
+def _assert_valid_path(planner: MotionPlanner, path: np.ndarray, start: np.ndarray) -> None:
+    np.testing.assert_array_equal(path[0], start)
+    assert planner.world.path_valid(path, RESOLUTION_RAD)
+    assert all(planner.robot.check_joint_limits(q) == [] for q in path)
+
+
+@pytest.mark.parametrize("planner_id", ["rrtconnect", "rrt", "prm", "bitstar", "auto"])
+def test_every_planner_finds_a_valid_path(setup, planner_id: str) -> None:
+    planner, start, goal = setup
+    time_s = 0.5 if planner_id == "bitstar" else 5.0
+    outcome = planner.plan(PlanProblem(start, goal, planner_id=planner_id, allowed_planning_time_s=time_s, seed=1))
+    assert outcome.status is PlanStatus.SUCCESS, outcome.detail
+    _assert_valid_path(planner, outcome.path, start)
+    np.testing.assert_array_equal(outcome.path[-1], goal)
+    assert outcome.planner_id in PLANNERS
+    assert outcome.path_length_rad > 2.0 and outcome.max_joint_step_rad > 0 and outcome.min_clearance_m > 0
+
+
+def test_goal_set_ends_at_a_member(setup) -> None:
+    planner, start, goal = setup
+    other = goal.copy()
+    other[0] = -2.0  # reachable by turning away from the block
+    outcome = planner.plan(PlanProblem(start, np.array([goal, other]), seed=2))
+    assert outcome.status is PlanStatus.SUCCESS
+    assert outcome.goal_index in (0, 1)
+    np.testing.assert_array_equal(outcome.path[-1], [goal, other][outcome.goal_index])
+
+
+def test_pose_goal_reaches_the_pose_within_tolerance(setup) -> None:
+    planner, start, _ = setup
+    q_target = planner.robot.home_position_rad.copy()
+    q_target[0] = -0.6
+    target = planner.robot.frame_pose(q_target, "panda_hand")
+    pose = PoseGoal("panda_hand", target, position_tolerance_m=1e-3, orientation_tolerance_rad=0.01)
+    outcome = planner.plan(PlanProblem(start, pose_goal=pose, seed=3))
+    assert outcome.status is PlanStatus.SUCCESS, outcome.detail
+    position_error_m, orientation_error_rad = pose_error(planner.robot, outcome.path[-1], target, "panda_hand")
+    assert position_error_m <= 1e-3 and orientation_error_rad <= 0.01
+    _assert_valid_path(planner, outcome.path, start)
+
+
+def test_unreachable_pose_and_pose_inside_the_block(setup) -> None:
+    planner, start, _ = setup
+    far = np.eye(4)
+    far[:3, 3] = (3.0, 0.0, 0.5)
+    outcome = planner.plan(PlanProblem(start, pose_goal=PoseGoal("panda_hand", far, orientation_tolerance_rad=None)))
+    assert outcome.status is PlanStatus.GOAL_UNREACHABLE
+    inside = np.eye(4)
+    inside[:3, 3] = BLOCK.position_m
+    outcome = planner.plan(PlanProblem(start, pose_goal=PoseGoal("panda_link7", inside, orientation_tolerance_rad=None)))
+    assert outcome.status is PlanStatus.GOAL_INVALID, outcome.detail
+
+
+def test_goal_tolerance_replaces_a_goal_in_collision(setup) -> None:
+    planner, start, goal = setup
+    # Nudge the goal until the hand just touches the block; a small tolerance finds free states.
+    touching = None
+    for dq in np.linspace(0, 1.0, 101):
+        q = goal.copy()
+        q[0] = 1.0 - dq
+        if planner.world.in_collision(q):
+            touching = q
+            break
+    assert touching is not None
+    assert planner.plan(PlanProblem(start, touching)).status is PlanStatus.GOAL_INVALID
+    outcome = planner.plan(PlanProblem(start, touching, goal_tolerance_rad=0.05, seed=4))
+    assert outcome.status is PlanStatus.SUCCESS, outcome.detail
+    assert np.max(np.abs(outcome.path[-1] - touching)) <= 0.05 + 1e-12
+
+
+def test_workspace_bounds_are_respected(setup) -> None:
+    planner, start, goal = setup
+    hand = [planner.robot.frame_pose(q, "panda_hand")[:3, 3] for q in (start, goal)]
+    low = np.minimum(*hand) - np.array([0.6, 0.6, 0.3])
+    high = np.maximum(*hand) + np.array([0.6, 0.6, 0.3])
+    outcome = planner.plan(PlanProblem(start, goal, workspace_min_m=low, workspace_max_m=high, seed=5))
+    assert outcome.status is PlanStatus.SUCCESS, outcome.detail
+    from robonav.pipeline.planning.metrics import interpolate_path
+
+    for q in interpolate_path(outcome.path, RESOLUTION_RAD):
+        p = planner.robot.frame_pose(q, "panda_hand")[:3, 3]
+        assert np.all(p >= low - 1e-9) and np.all(p <= high + 1e-9)
+    tight = planner.plan(PlanProblem(start, goal, workspace_min_m=hand[0] - 0.01, workspace_max_m=hand[0] + 0.01))
+    assert tight.status is PlanStatus.GOAL_INVALID
+
+
+def test_several_attempts_return_the_shortest(setup) -> None:
+    planner, start, goal = setup
+    outcome = planner.plan(PlanProblem(start, goal, seed=6, simplify=False, num_planning_attempts=4,
+                                       allowed_planning_time_s=20.0))
+    assert outcome.status is PlanStatus.SUCCESS
+    lengths = outcome.details["attempt_lengths_rad"]
+    assert len(lengths) == 4
+    assert outcome.path_length_rad == min(lengths)
+
+
+def test_prm_roadmap_is_reused_until_the_world_changes(setup) -> None:
+    planner, start, goal = setup
+    outcome = planner.plan(PlanProblem(start, goal, planner_id="prm", allowed_planning_time_s=2.0))
+    assert outcome.status is PlanStatus.SUCCESS, outcome.detail
+    first = planner.roadmap_size("prm")
+    assert first > 0
+    back = planner.plan(PlanProblem(goal, start, planner_id="prm", allowed_planning_time_s=2.0))
+    assert back.status is PlanStatus.SUCCESS
+    assert planner.roadmap_size("prm") >= first
+    planner.world.set_objects([BLOCK])  # same objects, but a new revision: the roadmap is dropped
+    assert planner.roadmap_size("prm") == 0
+
+
+def test_bad_requests_raise(setup) -> None:
+    planner, start, goal = setup
+    with pytest.raises(ValueError, match="unknown planner_id"):
+        planner.plan(PlanProblem(start, goal, planner_id="rrt-connect"))
+    with pytest.raises(ValueError, match="exactly one of goals_rad and pose_goal"):
+        planner.plan(PlanProblem(start))
+    with pytest.raises(ValueError, match="num_planning_attempts"):
+        planner.plan(PlanProblem(start, goal, num_planning_attempts=0))
+    with pytest.raises(ValueError, match="workspace_min_m"):
+        planner.plan(PlanProblem(start, goal, workspace_min_m=np.ones(3), workspace_max_m=np.zeros(3)))
+    with pytest.raises(ValueError, match="goal_tolerance_rad"):
+        planner.plan(PlanProblem(start, goal, goal_tolerance_rad=float("nan")))
