@@ -106,13 +106,20 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     plan.add_argument("--cloud-inflation", type=_non_negative_float, default=PerceptionConfig().inflation_m,
                       help="--scene cloud: occupancy inflation [m] (default: the perception default)")
     plan.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    from robonav.services.bench_executor import add_parser as add_executor_parser
+
+    add_executor_parser(kinds)
     return parser.parse_args(list(argv))
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of `robonav bench`; returns the exit code (2 on bad input)."""
     args = parse_args(sys.argv[1:] if argv is None else argv)
-    # Only `plan` exists so far; other benchmark kinds get their own sub-subcommand and function.
+    # Each benchmark kind has its own sub-subcommand and function.
+    if args.kind == "executor":
+        from robonav.services.bench_executor import main as executor_main
+
+        return executor_main(args)
     return plan_main(args)
 
 

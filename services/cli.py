@@ -26,6 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     sub.add_parser("up", help="run a Zenoh router and every service until Ctrl-C", add_help=False)
     sub.add_parser("demo", help="start everything, plan and execute the demo goals, print a JSON summary", add_help=False)
     sub.add_parser("bench", help="benchmarks: `robonav bench plan --problems DIR` (MotionBenchMaker)", add_help=False)
+    sub.add_parser("plot", help="plots: `robonav plot trajectory --json PATH_FILE -o out.png`", add_help=False)
     args, rest = parser.parse_known_args(argv)
     if args.command == "serve":
         import importlib
@@ -36,6 +37,10 @@ def main(argv: list[str] | None = None) -> int:
         from robonav.services.up import main as up_main
 
         return up_main(rest)
+    if args.command == "plot":
+        from robonav.services.plot import main as plot_main
+
+        return plot_main(rest)
     if args.command == "bench":
         from robonav.services.bench import main as bench_main
 

@@ -40,6 +40,19 @@ class ExecutorConfig:
     """Default max_acceleration_scaling_factor when a request gives none."""
     start_tolerance_rad: float = 0.05
     """An execute path must start within this of the measured joint state [rad]."""
+    preempt_tolerance_rad: float = 0.2
+    """While moving, an execute path must start within this of the commanded state [rad]."""
+    max_path_deviation_rad: float = 0.02
+    """Blended corners stay within this of the path's polyline and waypoints [rad]; 0 = rest at every waypoint."""
+    joint_state_timeout_s: float = 0.2
+    """Watchdog: no joint state for longer than this while moving stops the arm (state error) [s]."""
+    max_tracking_error_rad: float = 0.2
+    """Watchdog: a joint further than this from every setpoint of the last `tracking_latency_s`
+    while moving stops the arm [rad]."""
+    tracking_latency_s: float = 0.3
+    """Watchdog: how far back setpoints count for the tracking error (the loop's latency) [s]."""
+    busy_wait_s: float = 0.0
+    """The streaming loop polls the clock for this long before each tick instead of sleeping [s]."""
 
     def __post_init__(self) -> None:
         require(0 < self.rate_hz <= 2000, f"executor.rate_hz must be in (0, 2000], got {self.rate_hz}")
@@ -48,6 +61,13 @@ class ExecutorConfig:
             value = getattr(self, key)
             require(0 < value <= 1, f"executor.{key} must be in (0, 1], got {value}")
         require(self.start_tolerance_rad > 0, f"executor.start_tolerance_rad must be > 0, got {self.start_tolerance_rad}")
+        for key in ("preempt_tolerance_rad", "joint_state_timeout_s", "max_tracking_error_rad", "tracking_latency_s"):
+            value = getattr(self, key)
+            require(value > 0, f"executor.{key} must be > 0, got {value}")
+        require(0 <= self.busy_wait_s < 1.0 / self.rate_hz,
+                f"executor.busy_wait_s must be in [0, 1 / rate_hz), got {self.busy_wait_s}")
+        require(self.max_path_deviation_rad >= 0,
+                f"executor.max_path_deviation_rad must be >= 0, got {self.max_path_deviation_rad}")
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,8 @@
-"""Executor service: `executor/execute` and `executor/stop` queries, setpoints at the configured rate."""
+"""Executor service: `executor/execute` and `executor/stop` queries, setpoints at the configured rate.
+
+An execute while moving preempts (blends from the commanded state); the streaming loop also
+runs the watchdog (stale joint states, tracking error) on every cycle.
+"""
 
 from __future__ import annotations
 
@@ -14,7 +18,7 @@ from robonav.pipeline.joint_order import reorder_to_robot
 from robonav.pipeline.messages import (ExecuteRequest, ExecuteResponse, ExecutorStatus, JointState, Setpoint,
                                        StopRequest, StopResponse)
 from robonav.pipeline.robot import RobotModel
-from robonav.pipeline.trajectory.execution import ExecutionStateMachine, Limits
+from robonav.pipeline.trajectory.execution import ExecutionStateMachine, Limits, WatchdogConfig
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.pipeline.wire import ErrorCode, ProtocolError
 from robonav.services.common import Node, guarded_queryable, guarded_subscriber, decode_request, reply_ok, run_service
@@ -35,6 +39,14 @@ class ExecutorNode(Node):
         ))
         self._lock = threading.Lock()
         self._joint_state: JointState | None = None
+        self._measured_q: np.ndarray | None = None
+        """(n,) latest measured position in robot order [rad]."""
+        self._measured_at_s = -np.inf
+        """time.monotonic() when it arrived [s]."""
+        self._watchdog = WatchdogConfig(cfg.executor.joint_state_timeout_s, cfg.executor.max_tracking_error_rad,
+                                        cfg.executor.tracking_latency_s)
+        self.publish_times_s: list[float] | None = None
+        """When a list, spin appends time.monotonic() after each setpoint put (for `robonav bench executor`)."""
         keys = Keys(cfg.cell)
         # Setpoints and status must not be dropped under load (Zenoh's default for puts): a
         # lost final setpoint leaves the arm short of the goal while the status says done.
@@ -49,18 +61,14 @@ class ExecutorNode(Node):
 
     def on_joint_state(self, sample: zenoh.Sample) -> None:
         state = JointState.from_wire(sample.payload.to_bytes())
+        by_name = dict(zip(state.names, state.position.tolist()))
+        measured = (np.array([by_name[n] for n in self.robot.joint_names])
+                    if all(n in by_name for n in self.robot.joint_names) else None)
         with self._lock:
             self._joint_state = state
-
-    def _measured_position(self) -> np.ndarray | None:
-        with self._lock:
-            state = self._joint_state
-        if state is None:
-            return None
-        by_name = dict(zip(state.names, state.position.tolist()))
-        if any(n not in by_name for n in self.robot.joint_names):
-            return None
-        return np.array([by_name[n] for n in self.robot.joint_names])
+            if measured is not None and np.isfinite(measured).all():
+                self._measured_q = measured
+                self._measured_at_s = time.monotonic()
 
     def handle_execute(self, query: zenoh.Query) -> None:
         request = decode_request(query, ExecuteRequest)
@@ -70,27 +78,46 @@ class ExecutorNode(Node):
             if violations:
                 raise ProtocolError(ErrorCode.OUT_OF_JOINT_LIMITS, f"path waypoint {i} is outside the joint limits: {'; '.join(violations)}",
                                     {"waypoint": i, "violations": violations})
-        measured = self._measured_position()
-        if measured is not None:
-            offset = float(np.max(np.abs(path[0] - measured)))
-            if offset > self.cfg.executor.start_tolerance_rad:
-                raise ProtocolError(ErrorCode.INVALID_REQUEST,
-                                    f"path starts {offset:.3f} rad from the measured joint state (tolerance {self.cfg.executor.start_tolerance_rad} rad)",
-                                    {"offset_rad": offset})
+        self._check_start(path[0])
+        # The expensive part (corner blends) runs outside the lock, so streaming goes on meanwhile.
         trajectory = time_parameterize(
             path, max_velocity=self.robot.velocity_limits, max_acceleration=self.robot.acceleration_limits,
             max_jerk=self.robot.jerk_limits,
             velocity_scaling=request.max_velocity_scaling_factor or self.cfg.executor.velocity_scaling,
             acceleration_scaling=request.max_acceleration_scaling_factor or self.cfg.executor.acceleration_scaling,
+            max_path_deviation_rad=self.cfg.executor.max_path_deviation_rad,
         )
         trajectory_id = request.trajectory_id or uuid.uuid4().hex[:12]
         with self._lock:
-            if self.machine.busy:
-                raise ProtocolError(ErrorCode.EXECUTOR_BUSY, f"trajectory '{self.machine.trajectory_id}' is {self.machine.state}",
-                                    {"trajectory_id": self.machine.trajectory_id, "state": self.machine.state})
-            self.machine.start(trajectory, trajectory_id, time.monotonic())
-        log.info("executing %s: %d waypoints, %.2f s", trajectory_id, len(path), trajectory.duration_s)
-        reply_ok(query, ExecuteResponse(trajectory_id=trajectory_id, duration_s=trajectory.duration_s, waypoint_count=len(path)))
+            commanded = self.machine.commanded_state(time.monotonic())
+            if commanded is not None:
+                offset = float(np.max(np.abs(path[0] - commanded[0])))
+                if offset > self.cfg.executor.preempt_tolerance_rad:
+                    raise ProtocolError(ErrorCode.INVALID_REQUEST,
+                                        f"path starts {offset:.3f} rad from the commanded state of the moving arm "
+                                        f"(tolerance {self.cfg.executor.preempt_tolerance_rad} rad)", {"offset_rad": offset})
+            # One ruckig blend from the commanded state (tens of microseconds) under the lock.
+            preempted = self.machine.start(trajectory, trajectory_id, time.monotonic())
+            duration_s = self.machine.status(time.monotonic()).duration_s
+        log.info("executing %s: %d waypoints, %.2f s%s", trajectory_id, len(path), duration_s,
+                 " (preempted the running trajectory)" if preempted else "")
+        reply_ok(query, ExecuteResponse(trajectory_id=trajectory_id, duration_s=duration_s, waypoint_count=len(path)))
+
+    def _check_start(self, start: np.ndarray) -> None:
+        """An idle arm must be where the path starts, and the watchdog must have a fresh joint state."""
+        with self._lock:
+            measured, age_s, busy = self._measured_q, time.monotonic() - self._measured_at_s, self.machine.busy
+        if measured is None or age_s > self.cfg.executor.joint_state_timeout_s:
+            detail = "none received" if measured is None else f"the last is {age_s:.3f} s old"
+            raise ProtocolError(ErrorCode.NO_JOINT_STATE,
+                                f"no fresh joint state on robot/joint_states ({detail}; timeout "
+                                f"{self.cfg.executor.joint_state_timeout_s} s): refusing to move blind")
+        if not busy:
+            offset = float(np.max(np.abs(start - measured)))
+            if offset > self.cfg.executor.start_tolerance_rad:
+                raise ProtocolError(ErrorCode.INVALID_REQUEST,
+                                    f"path starts {offset:.3f} rad from the measured joint state (tolerance {self.cfg.executor.start_tolerance_rad} rad)",
+                                    {"offset_rad": offset})
 
     def handle_stop(self, query: zenoh.Query) -> None:
         request = decode_request(query, StopRequest)
@@ -111,6 +138,7 @@ class ExecutorNode(Node):
         while not stop.is_set():
             now = time.monotonic()
             with self._lock:
+                tripped = self.machine.check_watchdog(now, self._measured_q, now - self._measured_at_s, self._watchdog)
                 sample = self.machine.tick(now)
                 # A state change is published at once, not at the next status period.
                 due = now >= next_status or self.machine.state != published_state
@@ -120,6 +148,10 @@ class ExecutorNode(Node):
                     stamp=time.time(), trajectory_id=sample.trajectory_id, names=names,
                     position=sample.position, velocity=sample.velocity, acceleration=sample.acceleration,
                 ).to_wire())
+                if self.publish_times_s is not None:
+                    self.publish_times_s.append(time.monotonic())
+            if tripped is not None:
+                log.error("watchdog: %s", self.machine.error_message)
             if status is not None:
                 next_status = now + status_period_s
                 published_state = status.state
@@ -127,9 +159,13 @@ class ExecutorNode(Node):
             next_tick += period_s
             if next_tick < now - period_s:  # fell behind (e.g. the machine stalled): resync, do not burst
                 next_tick = now
-            delay = next_tick - time.monotonic()
+            # Sleep wakes up late by 0.05-1 ms; the last `busy_wait_s` before a tick is spent
+            # polling the clock instead (yielding the GIL), trading CPU for period accuracy.
+            delay = next_tick - time.monotonic() - self.cfg.executor.busy_wait_s
             if delay > 0:
                 time.sleep(delay)
+            while time.monotonic() < next_tick:
+                time.sleep(0)
         with self._lock:
             self.machine.stop(time.monotonic(), emergency=True)
 

@@ -1,10 +1,18 @@
-"""The executor's state machine: which trajectory is streaming, stopping it, reporting progress.
+"""The executor's state machine: which trajectory is streaming, preempting and stopping it, the watchdog.
 
 Pure and clock-agnostic: the caller passes `now_s` (any monotonic clock) to every call, so
 tests drive it with a simulated clock and the service with `time.monotonic()`.
+
+States: idle → executing → idle (last_result succeeded); executing → stopping → stopped
+(a stop request); executing → stopping → error (the watchdog: the arm is braked smoothly,
+then the machine reports `error` with `error_code` / `error_message` until the next start).
+A start while executing or stopping preempts: the new trajectory is blended in from the
+current commanded state, so position, velocity and acceleration stay continuous.
 """
 
 from __future__ import annotations
+
+import collections
 
 from dataclasses import dataclass
 from typing import Protocol
@@ -12,7 +20,13 @@ from typing import Protocol
 import numpy as np
 
 from robonav.pipeline.trajectory.stopping import stop_trajectory
+from robonav.pipeline.trajectory.timing import JointTrajectory, TrajectoryLimits, blend_from_state
 from robonav.pipeline.transforms import FloatArray
+
+JOINT_STATE_STALE = "JOINT_STATE_STALE"
+"""Status error code: no joint state for longer than the watchdog timeout while moving."""
+TRACKING_ERROR = "TRACKING_ERROR"
+"""Status error code: measured position too far from the commanded one while moving."""
 
 
 class SampledTrajectory(Protocol):
@@ -22,14 +36,8 @@ class SampledTrajectory(Protocol):
     def sample(self, t_s: float) -> tuple[FloatArray, FloatArray, FloatArray]: ...
 
 
-@dataclass(frozen=True)
-class Limits:
-    velocity: FloatArray
-    """(n,) [rad/s]"""
-    acceleration: FloatArray
-    """(n,) [rad/s^2]"""
-    jerk: FloatArray
-    """(n,) [rad/s^3]"""
+Limits = TrajectoryLimits
+"""(n,) velocity [rad/s], acceleration [rad/s^2] and jerk [rad/s^3] limits."""
 
 
 @dataclass(frozen=True)
@@ -52,10 +60,27 @@ class ExecutionStatus:
     error_message: str
 
 
+@dataclass(frozen=True)
+class WatchdogConfig:
+    joint_state_timeout_s: float
+    """A joint state older than this while moving trips the watchdog [s]."""
+    max_tracking_error_rad: float
+    """|commanded - measured| of any joint above this while moving trips it [rad]."""
+    tracking_latency_s: float = 0.3
+    """A measurement is compared with every setpoint of this last window and the closest one
+    counts: the measured state lags the commanded one by the loop's latency (executor → robot
+    → joint state → executor), which under load reaches a few tens of milliseconds [s]."""
+
+
+_RECENT_SETPOINTS = 1000
+"""Setpoints kept for the tracking-error check (1 s at 1 kHz)."""
+
+
 class ExecutionStateMachine:
-    """idle → executing → (idle with last_result=succeeded) | stopping → stopped."""
+    """Streams one trajectory at a time; see the module docstring for the states."""
 
     def __init__(self, limits: Limits) -> None:
+        """Args: limits: the robot's full (unscaled) limits; an emergency stop uses them."""
         self.limits = limits
         self.state = "idle"
         self.trajectory_id = ""
@@ -64,40 +89,121 @@ class ExecutionStateMachine:
         self.error_message = ""
         self._trajectory: SampledTrajectory | None = None
         self._started_at_s = 0.0
-        self._stop_scaling = 1.0
         self._last: SetpointSample | None = None
+        self._recent_q: collections.deque[FloatArray] = collections.deque(maxlen=_RECENT_SETPOINTS)
+        self._recent_t: collections.deque[float] = collections.deque(maxlen=_RECENT_SETPOINTS)
+        self._fault = False
 
     @property
     def busy(self) -> bool:
         return self.state in ("executing", "stopping")
 
-    def start(self, trajectory: SampledTrajectory, trajectory_id: str, now_s: float) -> None:
-        if self.busy:
-            raise RuntimeError(f"cannot start '{trajectory_id}': '{self.trajectory_id}' is {self.state}")
+    @property
+    def last_setpoint(self) -> SetpointSample | None:
+        """The last sample `tick` returned (the commanded state), or None."""
+        return self._last
+
+    def commanded_state(self, now_s: float) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """(q, qd, qdd) the running trajectory commands at `now_s`, or None when nothing streams."""
+        if not self.busy or self._trajectory is None:
+            return None
+        return self._trajectory.sample(now_s - self._started_at_s)
+
+    def start(self, trajectory: JointTrajectory, trajectory_id: str, now_s: float) -> bool:
+        """Stream `trajectory` from `now_s`; while moving, blend into it from the commanded state.
+
+        Args:
+            trajectory: From `time_parameterize`; when preempting, its first segment is
+                replaced by a ruckig blend from the commanded (q, qd, qdd) at `now_s` to the
+                end of that segment, within the trajectory's own (scaled) limits.
+            trajectory_id: Names it in setpoints and status.
+            now_s: Current time on the caller's clock [s].
+
+        Returns:
+            True when it preempted a moving trajectory.
+        """
+        current = self.commanded_state(now_s)
+        if current is not None:
+            trajectory = blend_from_state(trajectory, *current)
         self._trajectory = trajectory
         self._started_at_s = now_s
         self.trajectory_id = trajectory_id
         self.state = "executing"
         self.error_code = ""
         self.error_message = ""
+        self._fault = False
+        return current is not None
 
     def stop(self, now_s: float, *, emergency: bool = False, scaling: float = 0.5) -> None:
-        """Bring the arm to rest from the current setpoint within the jerk limits.
+        """Bring the arm to rest from the commanded state at `now_s`, continuous in p, v and a.
 
-        A normal stop uses the limits scaled by `scaling`; an emergency stop uses the full limits.
+        A normal stop brakes all joints synchronised within the running trajectory's scaled
+        limits (or the full limits times `scaling` when it carries none); an emergency stop
+        brakes each joint as fast as its full, unscaled limits allow.
         """
-        if not self.busy or self._trajectory is None:
+        current = self.commanded_state(now_s)
+        if current is None:
             return
-        q, qd, qdd = self._trajectory.sample(now_s - self._started_at_s)
-        factor = 1.0 if emergency else scaling
+        running = getattr(self._trajectory, "limits", None)
+        if emergency:
+            limits, synchronize = self.limits, False
+        elif running is not None:  # a second normal stop keeps the ramp's limits
+            limits, synchronize = running, True
+        else:
+            limits = Limits(self.limits.velocity, self.limits.acceleration * scaling, self.limits.jerk * scaling)
+            synchronize = True
         self._trajectory = stop_trajectory(
-            q, qd, qdd,
-            max_velocity=self.limits.velocity,
-            max_acceleration=self.limits.acceleration * factor,
-            max_jerk=self.limits.jerk * factor,
+            *current,
+            max_velocity=limits.velocity,
+            max_acceleration=limits.acceleration,
+            max_jerk=limits.jerk,
+            synchronize=synchronize,
         )
         self._started_at_s = now_s
         self.state = "stopping"
+
+    def fault(self, now_s: float, code: str, message: str) -> None:
+        """Brake smoothly (like a normal stop) and report `error` with `code` once at rest."""
+        if not self.busy:
+            return
+        self.stop(now_s)
+        self.error_code = code
+        self.error_message = message
+        self._fault = True
+
+    def check_watchdog(self, now_s: float, measured_q: FloatArray | None, joint_state_age_s: float,
+                       config: WatchdogConfig) -> str | None:
+        """Trip a fault on a stale joint state or a tracking error while executing.
+
+        Args:
+            now_s: Current time [s].
+            measured_q: (n,) latest measured position in robot order [rad], or None if never received.
+            joint_state_age_s: Time since that joint state arrived [s] (inf if never).
+            config: The thresholds.
+
+        Returns:
+            The error code when it tripped now, else None.
+        """
+        if self.state != "executing":
+            return None  # a stop or fault is already bringing the arm to rest
+        if joint_state_age_s > config.joint_state_timeout_s:
+            age = "never received" if not np.isfinite(joint_state_age_s) else f"{joint_state_age_s:.3f} s old"
+            self.fault(now_s, JOINT_STATE_STALE,
+                       f"joint state {age} (timeout {config.joint_state_timeout_s} s): stopped '{self.trajectory_id}'")
+            return JOINT_STATE_STALE
+        if measured_q is not None and self._recent_q and \
+                np.max(np.abs(self._recent_q[-1] - measured_q)) > config.max_tracking_error_rad:
+            # Only then look back over the latency window (the common case costs one comparison).
+            window = [q for q, t in zip(self._recent_q, self._recent_t) if t >= now_s - config.tracking_latency_s]
+            errors = np.abs(np.array(window or [self._recent_q[-1]]) - measured_q)
+            error = errors[int(np.argmin(np.max(errors, axis=1)))]
+            joint = int(np.argmax(error))
+            if error[joint] > config.max_tracking_error_rad:
+                self.fault(now_s, TRACKING_ERROR,
+                           f"joint {joint} is {error[joint]:.3f} rad from its setpoint (limit "
+                           f"{config.max_tracking_error_rad} rad): stopped '{self.trajectory_id}'")
+                return TRACKING_ERROR
+        return None
 
     def tick(self, now_s: float) -> SetpointSample | None:
         """The setpoint at `now_s`, or None when nothing is streaming."""
@@ -107,10 +213,16 @@ class ExecutionStateMachine:
         q, qd, qdd = self._trajectory.sample(t)
         sample = SetpointSample(self.trajectory_id, q, qd, qdd)
         self._last = sample
+        self._recent_q.append(q)
+        self._recent_t.append(now_s)
         if t >= self._trajectory.duration_s:
             # The final sample is exactly at rest at the goal; publish it, then go idle.
-            self.last_result = "succeeded" if self.state == "executing" else "stopped"
-            self.state = "idle" if self.state == "executing" else "stopped"
+            if self.state == "executing":
+                self.state, self.last_result = "idle", "succeeded"
+            elif self._fault:
+                self.state, self.last_result = "error", "aborted"
+            else:
+                self.state, self.last_result = "stopped", "stopped"
             self._trajectory = None
         return sample
 

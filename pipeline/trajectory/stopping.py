@@ -6,7 +6,7 @@ import numpy as np
 import numpy.typing as npt
 import ruckig
 
-from robonav.pipeline.trajectory.timing import JointTrajectory, validate_joint_vector
+from robonav.pipeline.trajectory.timing import JointTrajectory, TrajectoryLimits, validate_joint_vector
 
 
 def stop_trajectory(
@@ -17,12 +17,15 @@ def stop_trajectory(
     max_velocity: npt.ArrayLike,
     max_acceleration: npt.ArrayLike,
     max_jerk: npt.ArrayLike,
+    synchronize: bool = False,
 ) -> JointTrajectory:
-    """Bring every joint to zero velocity and acceleration as fast as its limits allow.
+    """Bring every joint to zero velocity and acceleration within its limits (ruckig velocity control).
 
-    Each joint brakes on its own time-optimal profile (no synchronisation): that gives the
-    shortest stopping distance per joint. The arm therefore leaves the planned path while
-    braking, by at most each joint's own stopping distance. The trajectory starts exactly
+    Without `synchronize` each joint brakes on its own time-optimal profile: the shortest
+    stopping distance per joint (the emergency stop). With it all joints come to rest at the
+    same instant (`Synchronization.Time`), which keeps the motion closer to its direction
+    (the normal stop). Either way the arm may leave the planned path while braking, by at
+    most each joint's own stopping distance. The trajectory starts exactly
     at (q, qd, qdd), so it can replace a running trajectory at any instant; a state above
     the limits is first braked back inside them (ruckig handles that).
 
@@ -33,6 +36,7 @@ def stop_trajectory(
         max_velocity: (n,) joint velocity limits, > 0 (ruckig needs them even for braking).
         max_acceleration: (n,) joint acceleration limits, > 0.
         max_jerk: (n,) joint jerk limits, > 0.
+        synchronize: All joints reach rest together.
 
     Returns:
         A trajectory ending at rest; duration 0 if the state is already at rest.
@@ -51,15 +55,18 @@ def stop_trajectory(
     otg = ruckig.Ruckig(dof)
     inp = ruckig.InputParameter(dof)
     inp.control_interface = ruckig.ControlInterface.Velocity
-    inp.synchronization = ruckig.Synchronization.No
+    inp.synchronization = ruckig.Synchronization.Time if synchronize else ruckig.Synchronization.No
     inp.current_position = q_arr.tolist()
     inp.current_velocity = qd_arr.tolist()
     inp.current_acceleration = qdd_arr.tolist()
     inp.target_velocity = [0.0] * dof
     inp.target_acceleration = [0.0] * dof
-    inp.max_velocity = validate_joint_vector(max_velocity, "max_velocity", dof, positive=True).tolist()
-    inp.max_acceleration = validate_joint_vector(max_acceleration, "max_acceleration", dof, positive=True).tolist()
-    inp.max_jerk = validate_joint_vector(max_jerk, "max_jerk", dof, positive=True).tolist()
+    limits = TrajectoryLimits(validate_joint_vector(max_velocity, "max_velocity", dof, positive=True),
+                              validate_joint_vector(max_acceleration, "max_acceleration", dof, positive=True),
+                              validate_joint_vector(max_jerk, "max_jerk", dof, positive=True))
+    inp.max_velocity = limits.velocity.tolist()
+    inp.max_acceleration = limits.acceleration.tolist()
+    inp.max_jerk = limits.jerk.tolist()
     trajectory = ruckig.Trajectory(dof)
     failure = f"ruckig failed to compute a stop from qd={qd_arr.tolist()}, qdd={qdd_arr.tolist()}"
     try:
@@ -68,4 +75,4 @@ def stop_trajectory(
         raise RuntimeError(failure) from exc
     if result not in (ruckig.Result.Working, ruckig.Result.Finished):
         raise RuntimeError(f"{failure}: {result}")
-    return JointTrajectory.from_ruckig(trajectory)
+    return JointTrajectory.from_ruckig(trajectory, limits=limits)

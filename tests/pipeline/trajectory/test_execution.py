@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from robonav.pipeline.robot_config import RobotConfig
-from robonav.pipeline.trajectory.execution import ExecutionStateMachine, Limits
+from robonav.pipeline.trajectory.execution import (JOINT_STATE_STALE, TRACKING_ERROR, ExecutionStateMachine, Limits,
+                                                   WatchdogConfig)
 from robonav.pipeline.trajectory.timing import time_parameterize
 
 ROBOT = RobotConfig()
@@ -48,8 +49,6 @@ def test_stop_is_continuous_and_ends_at_rest() -> None:
     assert before is not None
     machine.stop(t_stop)
     assert machine.state == "stopping"
-    with pytest.raises(RuntimeError, match="stopping"):
-        machine.start(trajectory, "t3", now_s=t_stop)
     after = machine.tick(t_stop)
     assert after is not None
     for a, b in ((before.position, after.position), (before.velocity, after.velocity),
@@ -65,3 +64,108 @@ def test_stop_is_continuous_and_ends_at_rest() -> None:
     assert machine.state == "stopped" and machine.last_result == "stopped"
     machine.start(trajectory, "t4", now_s=t)  # a stopped executor takes new work
     assert machine.state == "executing"
+
+
+def _run(machine: ExecutionStateMachine, t0: float, t1: float, dt: float = 0.001) -> list:  # noqa: ANN401
+    samples = []
+    for t in np.arange(t0, t1, dt):
+        sample = machine.tick(float(t))
+        if sample is not None:
+            samples.append(sample)
+    return samples
+
+
+def _assert_continuous(before, after) -> None:  # noqa: ANN001
+    for a, b in ((before.position, after.position), (before.velocity, after.velocity),
+                 (before.acceleration, after.acceleration)):
+        np.testing.assert_allclose(a, b, atol=1e-9)
+
+
+def _assert_within(samples: list, scale: float, dt: float = 0.001) -> None:
+    qd = np.array([s.velocity for s in samples])
+    qdd = np.array([s.acceleration for s in samples])
+    assert np.all(np.abs(qd) <= LIMITS.velocity * scale + 1e-6)
+    assert np.all(np.abs(qdd) <= LIMITS.acceleration * scale + 1e-6)
+    assert np.all(np.abs(np.diff(qdd, axis=0)) / dt <= LIMITS.jerk * scale * (1 + 1e-6) + 1e-6)
+
+
+def test_preemption_blends_from_the_commanded_state() -> None:
+    machine = ExecutionStateMachine(LIMITS)
+    first = _trajectory()
+    machine.start(first, "a", now_s=0.0)
+    t_switch = 0.4 * first.duration_s
+    before = machine.tick(t_switch)
+    assert before is not None and np.abs(before.velocity).max() > 0.1
+    q = before.position
+    new_path = np.array([q, q + [0.3, 0.2, -0.2, 0.1, 0.0, 0.0, 0.2], q + [0.1, 0.4, 0.0, 0.3, 0.1, 0.0, 0.0]])
+    second = time_parameterize(new_path, max_velocity=LIMITS.velocity, max_acceleration=LIMITS.acceleration,
+                               max_jerk=LIMITS.jerk, velocity_scaling=0.5, acceleration_scaling=0.5)
+    assert machine.start(second, "b", now_s=t_switch) is True
+    after = machine.tick(t_switch)
+    assert after is not None and after.trajectory_id == "b"
+    _assert_continuous(before, after)
+    samples = [before, after, *_run(machine, t_switch + 0.001, t_switch + 30.0)]
+    _assert_within(samples, 0.5)
+    assert machine.state == "idle" and machine.last_result == "succeeded"
+    np.testing.assert_array_equal(samples[-1].position, new_path[-1])
+
+
+@pytest.mark.parametrize("emergency", [False, True])
+def test_stop_is_jerk_limited_and_continuous(emergency: bool) -> None:
+    machine = ExecutionStateMachine(LIMITS)
+    trajectory = _trajectory()
+    machine.start(trajectory, "s", now_s=0.0)
+    t_stop = 0.5 * trajectory.duration_s
+    before = machine.tick(t_stop)
+    machine.stop(t_stop, emergency=emergency)
+    after = machine.tick(t_stop)
+    _assert_continuous(before, after)
+    samples = [before, after, *_run(machine, t_stop + 0.001, t_stop + 5.0)]
+    _assert_within(samples, 1.0 if emergency else 0.5)  # a normal stop keeps the trajectory's scaled limits
+    np.testing.assert_allclose(samples[-1].velocity, 0.0, atol=1e-9)
+    assert machine.state == "stopped"
+
+
+def test_emergency_stop_is_shorter_than_a_normal_stop() -> None:
+    durations = {}
+    for emergency in (False, True):
+        machine = ExecutionStateMachine(LIMITS)
+        trajectory = _trajectory()
+        machine.start(trajectory, "s", now_s=0.0)
+        machine.tick(0.5 * trajectory.duration_s)
+        machine.stop(0.5 * trajectory.duration_s, emergency=emergency)
+        durations[emergency] = machine.status(0.5 * trajectory.duration_s).duration_s
+    assert durations[True] < durations[False]
+
+
+WATCHDOG = WatchdogConfig(joint_state_timeout_s=0.2, max_tracking_error_rad=0.05)
+
+
+def test_watchdog_stops_on_stale_joint_states_then_reports_error() -> None:
+    machine = ExecutionStateMachine(LIMITS)
+    trajectory = _trajectory()
+    machine.start(trajectory, "w", now_s=0.0)
+    sample = machine.tick(0.3)
+    assert machine.check_watchdog(0.3, sample.position, 0.1, WATCHDOG) is None
+    assert machine.check_watchdog(0.3, sample.position, 0.25, WATCHDOG) == JOINT_STATE_STALE
+    assert machine.state == "stopping" and machine.error_code == JOINT_STATE_STALE
+    assert "0.250 s old" in machine.error_message
+    after = machine.tick(0.3)
+    _assert_continuous(sample, after)
+    assert machine.check_watchdog(0.31, None, 9.0, WATCHDOG) is None  # already stopping: no second fault
+    _run(machine, 0.301, 5.0)
+    status = machine.status(5.0)
+    assert (status.state, status.last_result, status.error_code) == ("error", "aborted", JOINT_STATE_STALE)
+    machine.start(trajectory, "w2", now_s=6.0)  # a new execute clears the error
+    assert machine.state == "executing" and machine.error_code == ""
+
+
+def test_watchdog_stops_on_tracking_error() -> None:
+    machine = ExecutionStateMachine(LIMITS)
+    machine.start(_trajectory(), "w", now_s=0.0)
+    sample = machine.tick(0.2)
+    measured = sample.position.copy()
+    measured[3] += 0.06
+    assert machine.check_watchdog(0.2, measured, 0.0, WATCHDOG) == TRACKING_ERROR
+    assert "joint 3" in machine.error_message
+    assert machine.check_watchdog(0.2, None, float("inf"), WATCHDOG) is None

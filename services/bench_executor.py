@@ -1,0 +1,200 @@
+"""`robonav bench executor`: setpoint timing of the streaming loop, and trajectory durations vs TOPP-RA.
+
+(a) Period error. A Zenoh router, the executor node (its real `spin` loop in a thread) and a
+fake robot (echoes the last setpoint as the joint state at 100 Hz, so the watchdog is
+satisfied) run in this process for `--seconds`. Paths between seeded random configurations
+are executed back to back, each preempting the last before it ends, so setpoints stream
+without a pause. The loop appends `time.monotonic()` right after each setpoint `put`
+returns; the period error is |t[i+1] - t[i] - 1/rate|. This measures the executor's own
+schedule (sleep wake-up jitter, GIL stalls, the cost of `put`), not the delivery latency to
+a subscriber. A missed cycle is a period longer than twice the nominal one.
+
+(b) Duration ratio. Seeded random Panda paths of 3-8 waypoints within the joint limits
+(no collision model) are timed by `time_parameterize` (jerk-limited, corners blended within
+`executor.max_path_deviation_rad`) and by TOPP-RA (time-optimal for velocity and
+acceleration limits only, on a cubic spline through the same waypoints, same scaled limits).
+The ratio is ours / TOPP-RA's duration. TOPP-RA's spline may stray far from the polyline;
+ours stays within the bound, so a ratio near 1 is not expected at sharp corners.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robonav.pipeline.messages import JointState, Setpoint
+from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.trajectory.timing import time_parameterize
+from robonav.services.config import RobonavConfig, ZenohConfig, load_config
+
+
+def add_parser(kinds: Any) -> None:  # noqa: ANN401 - argparse's private subparsers type
+    """Register `executor` on `robonav bench`'s sub-commands."""
+    parser = kinds.add_parser("executor", help="setpoint period error at the stream rate; durations vs TOPP-RA",
+                              description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=60.0, help="streaming time for the period measurement [s]")
+    parser.add_argument("--rate", type=float, default=None, help="setpoint rate [Hz] (default: executor.rate_hz)")
+    parser.add_argument("--paths", type=int, default=20, help="random paths for the duration comparison")
+    parser.add_argument("--busy-wait", type=float, default=None, help="executor.busy_wait_s override [s]")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--config", default=None, help="YAML config (default: the packaged one)")
+    parser.add_argument("--json", type=Path, default=None, help="write the summary as JSON to this file")
+
+
+def random_paths(robot: RobotModel, count: int, seed: int) -> list[np.ndarray]:
+    """`count` paths of 3-8 waypoints, steps of up to 0.8 rad per joint, inside the joint limits."""
+    rng = np.random.default_rng(seed)
+    lower, upper = robot.lower_limits_rad + 0.05, robot.upper_limits_rad - 0.05
+    paths = []
+    for _ in range(count):
+        q = np.clip(robot.home_position_rad + rng.uniform(-0.5, 0.5, robot.dof), lower, upper)
+        waypoints = [q]
+        for _ in range(int(rng.integers(3, 9)) - 1):
+            waypoints.append(np.clip(waypoints[-1] + rng.uniform(-0.8, 0.8, robot.dof), lower, upper))
+        paths.append(np.array(waypoints))
+    return paths
+
+
+def toppra_duration_s(path: np.ndarray, v_max: np.ndarray, a_max: np.ndarray) -> float:
+    import toppra
+    import toppra.algorithm
+    import toppra.constraint
+
+    toppra.setup_logging("WARNING")
+    lengths = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    ss = np.concatenate([[0.0], np.cumsum(lengths)]) / lengths.sum()
+    spline = toppra.SplineInterpolator(ss, path)
+    constraints = [toppra.constraint.JointVelocityConstraint(np.column_stack([-v_max, v_max])),
+                   toppra.constraint.JointAccelerationConstraint(np.column_stack([-a_max, a_max]))]
+    instance = toppra.algorithm.TOPPRA(constraints, spline, gridpoints=np.linspace(0, 1, 1001),
+                                       parametrizer="ParametrizeConstAccel")
+    trajectory = instance.compute_trajectory(0, 0)
+    if trajectory is None:
+        raise RuntimeError("TOPP-RA found no parameterisation")
+    return float(trajectory.duration)
+
+
+def duration_ratios(cfg: RobonavConfig, robot: RobotModel, count: int, seed: int) -> dict[str, Any]:
+    scale_v, scale_a = cfg.executor.velocity_scaling, cfg.executor.acceleration_scaling
+    ours, theirs, deviations = [], [], []
+    for path in random_paths(robot, count, seed):
+        trajectory = time_parameterize(path, max_velocity=robot.velocity_limits, max_acceleration=robot.acceleration_limits,
+                                       max_jerk=robot.jerk_limits, velocity_scaling=scale_v, acceleration_scaling=scale_a,
+                                       max_path_deviation_rad=cfg.executor.max_path_deviation_rad)
+        ours.append(trajectory.duration_s)
+        deviations.append(trajectory.max_path_deviation_rad)
+        theirs.append(toppra_duration_s(path, robot.velocity_limits * scale_v, robot.acceleration_limits * scale_a))
+    ratio = np.array(ours) / np.array(theirs)
+    return {"paths": count, "median": float(np.median(ratio)), "max": float(ratio.max()), "min": float(ratio.min()),
+            "ours_s_total": float(np.sum(ours)), "toppra_s_total": float(np.sum(theirs)),
+            "max_path_deviation_rad": float(np.max(deviations))}
+
+
+def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: int) -> dict[str, Any]:
+    from robonav.services.client import RobonavClient
+    from robonav.services.common import open_session
+    from robonav.services.executor import ExecutorNode
+
+    from robonav.services.keys import Keys
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
+    node_session = open_session(ZenohConfig(connect=(endpoint,)))
+    node = ExecutorNode(cfg, node_session)
+    node.publish_times_s = []
+    stop = threading.Event()
+    spinner = threading.Thread(target=node.spin, args=(stop,), daemon=True)
+    client_session = open_session(ZenohConfig(connect=(endpoint,)))
+    client = RobonavClient(client_session, cfg.cell)
+    keys = Keys(cfg.cell)
+    position = [robot.home_position_rad.copy()]
+    sub = client_session.declare_subscriber(
+        keys.setpoint, lambda sample: position.__setitem__(0, Setpoint.from_wire(sample.payload.to_bytes()).position))
+    robot_stop = threading.Event()
+
+    def fake_robot() -> None:
+        while not robot_stop.wait(0.01):
+            client_session.put(keys.joint_states, JointState(stamp=time.time(), names=robot.joint_names,
+                                                             position=position[0], velocity=np.zeros(robot.dof)).to_wire())
+
+    robot_thread = threading.Thread(target=fake_robot, daemon=True)
+    robot_thread.start()
+    spinner.start()
+    rng = np.random.default_rng(seed)
+    lower, upper = robot.lower_limits_rad + 0.1, robot.upper_limits_rad - 0.1
+    preemptions = 0
+    try:
+        client.wait_for(lambda: node._measured_q is not None, 5.0)
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            start = position[0].copy()
+            goal = np.clip(start + rng.uniform(-0.6, 0.6, robot.dof), lower, upper)
+            middle = np.clip((start + goal) / 2 + rng.uniform(-0.2, 0.2, robot.dof), lower, upper)
+            reply = client.execute(np.array([start, middle, goal]))
+            duration_s = getattr(reply, "duration_s", 0.5)
+            preemptions += 1
+            # Preempt 0.3 s before the end so the stream never pauses.
+            time.sleep(max(min(duration_s - 0.3, end - time.monotonic()), 0.05))
+        times = np.array(node.publish_times_s)
+    finally:
+        stop.set()
+        spinner.join(timeout=5.0)
+        robot_stop.set()
+        robot_thread.join()
+        sub.undeclare()
+        client.close()
+        node.close()
+        for session in (client_session, node_session, router):
+            session.close()
+    nominal_s = 1.0 / cfg.executor.rate_hz
+    periods = np.diff(times)
+    error_ms = np.abs(periods - nominal_s) * 1e3
+    return {"setpoints": int(times.size), "executes": preemptions,
+            "p50": float(np.percentile(error_ms, 50)), "p99": float(np.percentile(error_ms, 99)),
+            "max": float(error_ms.max()), "missed": int(np.sum(periods > 2 * nominal_s)),
+            "mean_period_ms": float(periods.mean() * 1e3)}
+
+
+def main(args: argparse.Namespace) -> int:
+    """`robonav bench executor`: print the summary, write the JSON."""
+    cfg = load_config(args.config)
+    if args.rate is not None:
+        cfg = dataclasses.replace(cfg, executor=dataclasses.replace(cfg.executor, rate_hz=args.rate))
+    if args.busy_wait is not None:
+        cfg = dataclasses.replace(cfg, executor=dataclasses.replace(cfg.executor, busy_wait_s=args.busy_wait))
+    robot = RobotModel.from_config(cfg.robot)
+    ratios = duration_ratios(cfg, robot, args.paths, args.seed)
+    periods = period_errors(cfg, robot, args.seconds, args.seed)
+    report = {"rate_hz": cfg.executor.rate_hz, "seconds": args.seconds, "busy_wait_s": cfg.executor.busy_wait_s,
+              "period_error_ms": {k: periods[k] for k in ("p50", "p99", "max")}, "missed": periods["missed"],
+              "setpoints": periods["setpoints"], "executes": periods["executes"],
+              "mean_period_ms": periods["mean_period_ms"],
+              "duration_ratio_vs_toppra": ratios,
+              "method": "period: time.monotonic() after each setpoint put in the executor's spin loop (same process); "
+                        "ratio: time_parameterize duration / TOPP-RA (vel+acc, cubic spline) duration"}
+    print(f"rate {report['rate_hz']:.0f} Hz for {args.seconds:.0f} s: {periods['setpoints']} setpoints, "
+          f"{periods['executes']} executes (each preempting the last)")
+    print(f"period error [ms]: p50 {periods['p50']:.3f}  p99 {periods['p99']:.3f}  max {periods['max']:.3f}  "
+          f"missed (> 2x period) {periods['missed']}")
+    print(f"duration vs TOPP-RA over {ratios['paths']} paths: median {ratios['median']:.3f}  max {ratios['max']:.3f}  "
+          f"min {ratios['min']:.3f}  (our max deviation {ratios['max_path_deviation_rad']:.4f} rad)")
+    if args.json is not None:
+        args.json.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(prog="robonav bench")
+    add_parser(parser.add_subparsers(dest="kind", required=True))
+    sys.exit(main(parser.parse_args()))
