@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import os
 import re
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from robonav.pipeline.scene import SceneObject
 from robonav.services.bench import SUMMARY_KEYS, ProblemRecord, format_table, occupancy_of_objects, summarize
 from robonav.services.cli import main as cli_main
 
-MBM_DIR = Path(__file__).resolve().parents[3] / "shared" / "benchmarks" / "mbm"
+MBM_DIR = Path(os.environ.get("ROBONAV_MBM_DIR") or Path(__file__).resolve().parents[3] / "shared" / "benchmarks" / "mbm")
 # The intended smoke set is the first 3 problems of each family minus one (20 problems). Within
 # a 1 s budget the current planner never solves bookshelf_tall #2, and solves bookshelf_tall #1
 # and cage #1-#3 only in some seeded trials, so for now the smoke run keeps the other 16: each

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import copy
 import json
 from pathlib import Path
@@ -14,7 +15,7 @@ from robonav.pipeline.mesh_check import MeshCollisionChecker
 from robonav.pipeline.planning.mbm import MBM_PANDA_POSITION_LIMITS_RAD, MbmProblemSet, mbm_robot_config, parse_mbm
 from robonav.pipeline.robot import RobotModel
 
-MBM_DIR = Path(__file__).resolve().parents[4] / "shared" / "benchmarks" / "mbm"
+MBM_DIR = Path(os.environ.get("ROBONAV_MBM_DIR") or Path(__file__).resolve().parents[4] / "shared" / "benchmarks" / "mbm")
 """The shared benchmark data (../shared/benchmarks/mbm next to the repository)."""
 OBSTACLES_PER_PROBLEM = {  # FORMAT.md's table
     "bookshelf_small": 7, "bookshelf_tall": 15, "bookshelf_thin": 21, "box": 7,
