@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,8 @@ from robonav.pipeline.acm import default_state_rad, generate_acm
 from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.robot import RobotModel
 
-MBM_BOX = Path("/work/shared/benchmarks/mbm/box.json")
+MBM_BOX = Path(os.environ.get("ROBONAV_MBM_DIR") or Path(__file__).resolve().parents[3] / "shared" / "benchmarks" / "mbm") / "box.json"
+"""The shared MotionBenchMaker data next to the repository (or where ROBONAV_MBM_DIR points)."""
 N_SAMPLES = 1000
 """Far fewer than the default 10000, to keep the test fast; see the report for the full figures."""
 

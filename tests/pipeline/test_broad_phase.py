@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,8 @@ from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.robot_config import RobotConfig
 from robonav.pipeline.scene import SceneObject
 
-MBM_BOX = Path("/work/shared/benchmarks/mbm/box.json")
+MBM_BOX = Path(os.environ.get("ROBONAV_MBM_DIR") or Path(__file__).resolve().parents[3] / "shared" / "benchmarks" / "mbm") / "box.json"
+"""The shared MotionBenchMaker data next to the repository (or where ROBONAV_MBM_DIR points)."""
 
 
 @pytest.fixture(scope="module")
