@@ -57,6 +57,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from robonav.pipeline.planning.inputs import bounds_violation, joint_vector
 from robonav.pipeline.planning.result import PlanResult, PlanStatus
 from robonav.pipeline.transforms import FloatArray
 
@@ -103,11 +104,11 @@ def plan_lattice(
             resolution, budget or negative weight.
     """
     t0 = time.perf_counter()
-    lower = _vector(lower_rad, "lower_rad")
+    lower = joint_vector(lower_rad, "lower_rad")
     n = lower.shape[0]
-    upper = _vector(upper_rad, "upper_rad", n)
-    start = _vector(q_start, "q_start", n)
-    goal = _vector(q_goal, "q_goal", n)
+    upper = joint_vector(upper_rad, "upper_rad", n)
+    start = joint_vector(q_start, "q_start", n)
+    goal = joint_vector(q_goal, "q_goal", n)
     for i in range(n):
         if not lower[i] < upper[i]:
             raise ValueError(f"lower_rad[{i}] = {lower[i]} must be < upper_rad[{i}] = {upper[i]}")
@@ -124,7 +125,7 @@ def plan_lattice(
         return PlanResult(status, path, detail, time.perf_counter() - t0)
 
     for label, q in (("start", start), ("goal", goal)):
-        problem = _bounds_violation(q, lower, upper)
+        problem = bounds_violation(q, lower, upper)
         if problem:
             return done(PlanStatus.OUT_OF_BOUNDS, f"{label}: {problem}")
     if not is_valid(start):
@@ -218,23 +219,3 @@ def _trace(parents: dict[tuple[int, ...], tuple[int, ...] | None], last: tuple[i
         key = parents[key]
     keys.reverse()
     return [state(k) for k in keys]
-
-
-def _vector(value: FloatArray, label: str, n: int | None = None) -> FloatArray:
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.ndim != 1 or arr.shape[0] == 0 or (n is not None and arr.shape[0] != n):
-        expected = f"({n},)" if n is not None else "(n >= 1,)"
-        raise ValueError(f"{label} must have shape {expected}, got shape {arr.shape}")
-    bad = np.flatnonzero(~np.isfinite(arr))
-    if bad.size:
-        raise ValueError(f"{label}[{int(bad[0])}] must be finite, got {arr[bad[0]]}")
-    return arr
-
-
-def _bounds_violation(q: FloatArray, lower: FloatArray, upper: FloatArray) -> str:
-    for i in range(q.shape[0]):
-        if q[i] < lower[i]:
-            return f"joint {i} = {q[i]:.6g} is below its lower bound {lower[i]:.6g}"
-        if q[i] > upper[i]:
-            return f"joint {i} = {q[i]:.6g} is above its upper bound {upper[i]:.6g}"
-    return ""

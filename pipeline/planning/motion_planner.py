@@ -143,18 +143,9 @@ class MotionPlanner:
         start = self.robot.validate_q(problem.start_rad, "start")
         is_valid, motion_valid = self._validity(problem)
 
-        violations = self.robot.check_joint_limits(start)
-        if violations:
-            return PlanOutcome(PlanStatus.OUT_OF_BOUNDS, f"start is outside the joint limits: {'; '.join(violations)}",
-                               details={"which": "start", "violations": violations})
-        pairs = self.world.collisions(start)
-        if pairs:
-            named = [f"{a}|{b}" for a, b in pairs]
-            return PlanOutcome(PlanStatus.START_INVALID, f"start is in collision: {', '.join(named)}",
-                               details={"pairs": named})
-        if not is_valid(start):
-            return PlanOutcome(PlanStatus.START_INVALID, "start: the end-effector is outside the workspace bounds",
-                               details={"which": "start", "workspace": True})
+        start_problem = self._state_problem(start, is_valid, "start", PlanStatus.START_INVALID)
+        if start_problem is not None:
+            return start_problem
 
         goals = self._goal_set(problem, start, is_valid, rng)
         if isinstance(goals, PlanOutcome):
@@ -222,33 +213,34 @@ class MotionPlanner:
         tolerance = problem.goal_tolerance_rad
         if not (math.isfinite(tolerance) and tolerance >= 0):
             raise ValueError(f"goal_tolerance_rad must be finite and >= 0, got {tolerance}")
-        kept, first_problem = [], None
-        for k, goal in enumerate(goals):
-            problem_here = self._goal_problem(goal, is_valid)
+        kept: list[FloatArray] = []
+        first_problem: PlanOutcome | None = None
+        for goal in goals:
+            problem_here = self._state_problem(goal, is_valid, "goal", PlanStatus.GOAL_INVALID)
             if problem_here is None:
                 kept.append(goal)
                 continue
-            first_problem = first_problem or (k, problem_here)
+            first_problem = first_problem or problem_here
             if tolerance > 0:
                 kept.extend(self._goals_near(goal, tolerance, is_valid, rng))
         if kept:
             return np.array(kept)
-        k, outcome = first_problem  # type: ignore[misc]
-        return outcome
+        return first_problem
 
-    def _goal_problem(self, goal: FloatArray, is_valid) -> PlanOutcome | None:  # noqa: ANN001
-        violations = self.robot.check_joint_limits(goal)
+    def _state_problem(self, q: FloatArray, is_valid, which: str,  # noqa: ANN001
+                       invalid: PlanStatus) -> PlanOutcome | None:
+        """Why the start or a goal `q` cannot be planned from/to (limits, collisions, workspace), or None."""
+        violations = self.robot.check_joint_limits(q)
         if violations:
-            return PlanOutcome(PlanStatus.OUT_OF_BOUNDS, f"goal is outside the joint limits: {'; '.join(violations)}",
-                               details={"which": "goal", "violations": violations})
-        pairs = self.world.collisions(goal)
+            return PlanOutcome(PlanStatus.OUT_OF_BOUNDS, f"{which} is outside the joint limits: {'; '.join(violations)}",
+                               details={"which": which, "violations": violations})
+        pairs = self.world.collisions(q)
         if pairs:
             named = [f"{a}|{b}" for a, b in pairs]
-            return PlanOutcome(PlanStatus.GOAL_INVALID, f"goal is in collision: {', '.join(named)}",
-                               details={"pairs": named})
-        if not is_valid(goal):
-            return PlanOutcome(PlanStatus.GOAL_INVALID, "goal: the end-effector is outside the workspace bounds",
-                               details={"which": "goal", "workspace": True})
+            return PlanOutcome(invalid, f"{which} is in collision: {', '.join(named)}", details={"pairs": named})
+        if not is_valid(q):
+            return PlanOutcome(invalid, f"{which}: the end-effector is outside the workspace bounds",
+                               details={"which": which, "workspace": True})
         return None
 
     def _goals_near(self, goal: FloatArray, tolerance: float, is_valid, rng: np.random.Generator,  # noqa: ANN001

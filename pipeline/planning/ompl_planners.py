@@ -26,6 +26,7 @@ from ompl import base as ob
 from ompl import geometric as og
 from ompl import util as ou
 
+from robonav.pipeline.planning.inputs import bounds_violation, joint_vector
 from robonav.pipeline.planning.result import PlanResult, PlanStatus
 from robonav.pipeline.transforms import FloatArray
 
@@ -110,9 +111,9 @@ class OmplSpace:
     """
 
     def __init__(self, problem: JointSpaceProblem, *, range_rad: float = 0.0) -> None:
-        lower = _vector(problem.lower_rad, "lower_rad")
+        lower = joint_vector(problem.lower_rad, "lower_rad")
         n = lower.shape[0]
-        upper = _vector(problem.upper_rad, "upper_rad", n)
+        upper = joint_vector(problem.upper_rad, "upper_rad", n)
         for i in range(n):
             if not lower[i] < upper[i]:
                 raise ValueError(f"lower_rad[{i}] = {lower[i]} must be < upper_rad[{i}] = {upper[i]}")
@@ -200,7 +201,7 @@ class OmplSpace:
             A `PlanResult` whose path is (K, n), unsimplified, or TIMEOUT.
         """
         t0 = time.perf_counter()
-        start = _vector(start_rad, "start_rad", self.dof)
+        start = joint_vector(start_rad, "start_rad", self.dof)
         goals = np.asarray(goals_rad, dtype=np.float64)
         if goals.ndim != 2 or goals.shape[0] == 0 or goals.shape[1] != self.dof:
             raise ValueError(f"goals_rad must have shape (G >= 1, {self.dof}), got {goals.shape}")
@@ -359,16 +360,16 @@ def plan_ompl(
     t0 = time.perf_counter()
     if planner_id not in PLANNER_CLASSES:
         raise ValueError(f"unknown planner_id {planner_id!r} (known: {', '.join(PLANNER_CLASSES)})")
-    lower = _vector(lower_rad, "lower_rad")
+    lower = joint_vector(lower_rad, "lower_rad")
     n = lower.shape[0]
-    upper = _vector(upper_rad, "upper_rad", n)
-    start = _vector(q_start, "q_start", n)
+    upper = joint_vector(upper_rad, "upper_rad", n)
+    start = joint_vector(q_start, "q_start", n)
     goals = np.asarray(q_goals, dtype=np.float64)
     goals = goals[None, :] if goals.ndim == 1 else goals
     if goals.ndim != 2 or goals.shape[0] == 0:
         raise ValueError(f"q_goals must have shape ({n},) or (G >= 1, {n}), got {np.shape(q_goals)}")
     for k, goal in enumerate(goals):
-        _vector(goal, "q_goal" if len(goals) == 1 else f"q_goals[{k}]", n)
+        joint_vector(goal, "q_goal" if len(goals) == 1 else f"q_goals[{k}]", n)
     for i in range(n):
         if not lower[i] < upper[i]:
             raise ValueError(f"lower_rad[{i}] = {lower[i]} must be < upper_rad[{i}] = {upper[i]}")
@@ -396,24 +397,3 @@ def plan_ompl(
     space = OmplSpace(JointSpaceProblem(lower, upper, is_valid, motion_valid), range_rad=range_rad)
     result = space.solve(planner_id, start, goals, time_limit_s=max(time_limit_s - (time.perf_counter() - t0), 1e-3))
     return done(result.status, result.detail, result.path)
-
-
-def bounds_violation(q: FloatArray, lower: FloatArray, upper: FloatArray) -> str:
-    """A sentence naming the first joint of `q` outside [lower, upper], or "" when inside."""
-    for i in range(q.shape[0]):
-        if q[i] < lower[i]:
-            return f"joint {i} = {q[i]:.6g} is below its lower bound {lower[i]:.6g}"
-        if q[i] > upper[i]:
-            return f"joint {i} = {q[i]:.6g} is above its upper bound {upper[i]:.6g}"
-    return ""
-
-
-def _vector(value: FloatArray, label: str, n: int | None = None) -> FloatArray:
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.ndim != 1 or arr.shape[0] == 0 or (n is not None and arr.shape[0] != n):
-        expected = f"({n},)" if n is not None else "(n >= 1,)"
-        raise ValueError(f"{label} must have shape {expected}, got shape {arr.shape}")
-    bad = np.flatnonzero(~np.isfinite(arr))
-    if bad.size:
-        raise ValueError(f"{label}[{int(bad[0])}] must be finite, got {arr[bad[0]]}")
-    return arr
