@@ -44,7 +44,7 @@ class ExecutorConfig:
     """While moving, an execute path must start within this of the commanded state [rad]."""
     max_path_deviation_rad: float = 0.02
     """Blended corners stay within this of the path's polyline and waypoints [rad]; 0 = rest at every waypoint."""
-    joint_state_timeout_s: float = 0.2
+    joint_state_timeout_s: float = 0.5
     """Watchdog: no joint state for longer than this while moving stops the arm (state error) [s]."""
     max_tracking_error_rad: float = 0.2
     """Watchdog: a joint further than this from every setpoint of the last `tracking_latency_s`
