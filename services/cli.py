@@ -1,8 +1,9 @@
-"""`robonav` command line: serve one service, bring all up, run the demo, or run a benchmark."""
+"""`robonav` command line: serve one service, bring all up, run the demo, or run a tool."""
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
 
@@ -11,6 +12,15 @@ SERVICE_MODULES = {
     "perception": "robonav.services.perception",
     "planner": "robonav.services.planner",
     "executor": "robonav.services.executor",
+}
+
+COMMANDS: dict[str, tuple[str, str]] = {
+    # name: (module whose `main(argv) -> int` runs it, help)
+    "up": ("robonav.services.up", "run a Zenoh router and every service until Ctrl-C"),
+    "demo": ("robonav.services.demo", "start everything, plan and execute the demo goals, print a JSON summary"),
+    "bench": ("robonav.services.bench", "benchmarks: `robonav bench plan --problems DIR` (MotionBenchMaker), "
+                                        "`robonav bench executor`"),
+    "plot": ("robonav.services.plot", "plots: `robonav plot trajectory --json PATH_FILE -o out.png`"),
 }
 
 
@@ -23,31 +33,14 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     serve = sub.add_parser("serve", help="run one service", add_help=False)
     serve.add_argument("service", choices=sorted(SERVICE_MODULES))
-    sub.add_parser("up", help="run a Zenoh router and every service until Ctrl-C", add_help=False)
-    sub.add_parser("demo", help="start everything, plan and execute the demo goals, print a JSON summary", add_help=False)
-    sub.add_parser("bench", help="benchmarks: `robonav bench plan --problems DIR` (MotionBenchMaker)", add_help=False)
-    sub.add_parser("plot", help="plots: `robonav plot trajectory --json PATH_FILE -o out.png`", add_help=False)
+    for name, (_, help_text) in COMMANDS.items():
+        sub.add_parser(name, help=help_text, add_help=False)
     args, rest = parser.parse_known_args(argv)
     if args.command == "serve":
-        import importlib
-
         module = importlib.import_module(SERVICE_MODULES[args.service])
-        return int(module.main(rest))
-    if args.command == "up":
-        from robonav.services.up import main as up_main
-
-        return up_main(rest)
-    if args.command == "plot":
-        from robonav.services.plot import main as plot_main
-
-        return plot_main(rest)
-    if args.command == "bench":
-        from robonav.services.bench import main as bench_main
-
-        return bench_main(rest)
-    from robonav.services.demo import main as demo_main
-
-    return demo_main(rest)
+    else:
+        module = importlib.import_module(COMMANDS[args.command][0])
+    return int(module.main(rest))
 
 
 if __name__ == "__main__":
