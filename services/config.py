@@ -89,7 +89,8 @@ class RobonavConfig:
     """Names one arm and its cameras; every key expression lives under robonav/<cell>/."""
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     robot: RobotConfig = field(default_factory=RobotConfig)
-    camera: CameraConfig = field(default_factory=CameraConfig)
+    cameras: tuple[CameraConfig, ...] = (CameraConfig(),)
+    """Every depth camera of the cell; perception fuses them into one map."""
     sim: SimConfig = field(default_factory=SimConfig)
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
@@ -99,6 +100,9 @@ class RobonavConfig:
     def __post_init__(self) -> None:
         require(bool(self.cell) and "/" not in self.cell and "*" not in self.cell,
                 f"cell must be a non-empty name without '/' or '*', got {self.cell!r}")
+        require(len(self.cameras) > 0, "cameras must list at least one camera")
+        ids = [c.camera_id for c in self.cameras]
+        require(len(set(ids)) == len(ids), f"cameras have duplicate camera_id values: {ids}")
         n = len(self.robot.joint_names)
         for i, goal in enumerate(self.demo.goals_rad):
             require(len(goal) == n, f"demo.goals_rad[{i}] has {len(goal)} values, expected {n}")

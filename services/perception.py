@@ -69,7 +69,7 @@ class PerceptionNode(Node):
         self.self_filter = SelfFilter(self.robot.link_hull_vertices, cfg.perception.self_filter_padding_m)
         self.map = OccupancyMap(cfg.perception)
         self.history = JointHistory(self.robot.joint_names)
-        self.world_from_camera = {cfg.camera.camera_id: cfg.camera.world_from_camera}
+        self.world_from_camera = {cam.camera_id: cam.world_from_camera for cam in cfg.cameras}
         self.published = 0
         self.dropped_unknown_camera = 0
         self.dropped_no_joint_state = 0

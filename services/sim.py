@@ -13,6 +13,7 @@ import time
 import numpy as np
 import zenoh
 
+from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.joint_order import reorder_to_robot
 from robonav.pipeline.messages import ContactsRequest, ContactsResponse, JointState, PointCloud, Setpoint
 from robonav.pipeline.perception.depth import points_from_depth
@@ -55,17 +56,18 @@ class ContactTracker:
 class SimNode(Node):
     def __init__(self, cfg: RobonavConfig, session: zenoh.Session) -> None:
         self.cfg = cfg
-        self.world = SimWorld(cfg.robot, cfg.camera, cfg.sim)
+        self.world = SimWorld(cfg.robot, cfg.cameras[0], cfg.sim)
         self.names = cfg.robot.joint_names
         self.contacts = ContactTracker()
         self._lock = threading.Lock()
         self._setpoint: Setpoint | None = None
         keys = Keys(cfg.cell)
         self._joint_pub = session.declare_publisher(keys.joint_states)
-        self._cloud_pub = session.declare_publisher(keys.camera_cloud(cfg.camera.camera_id))
+        self._cloud_pubs = {cam.camera_id: session.declare_publisher(keys.camera_cloud(cam.camera_id))
+                            for cam in cfg.cameras}
         self._sub = session.declare_subscriber(keys.setpoint, guarded_subscriber(self.on_setpoint, "sim"))
         self._queryable = session.declare_queryable(keys.contacts, guarded_queryable(self.handle_contacts, "sim"))
-        self._cloud_seq = 0
+        self._cloud_seq = dict.fromkeys(self._cloud_pubs, 0)
 
     def on_setpoint(self, sample: zenoh.Sample) -> None:
         setpoint = Setpoint.from_wire(sample.payload.to_bytes())
@@ -106,22 +108,22 @@ class SimNode(Node):
         with self._lock:
             self.contacts.min_distance_m = min(self.contacts.min_distance_m, distance)
 
-    def _publish_cloud(self) -> None:
+    def _publish_cloud(self, camera: CameraConfig) -> None:
         # Stamp the moment the scene is captured, not when the (slow) render ends, so the
         # joint state nearest the stamp is the pose that was rendered.
         stamp = time.time()
-        frame = self.world.render_depth()
-        points = points_from_depth(frame.depth_m, frame.intrinsics, max_depth_m=self.cfg.camera.far_m)
-        self._cloud_seq += 1
-        self._cloud_pub.put(PointCloud(stamp=stamp, camera_id=self.cfg.camera.camera_id,
-                                       points=np.asarray(points, dtype=np.float32), seq=self._cloud_seq,
-                                       intrinsics=frame.intrinsics).to_wire())
+        frame = self.world.render_depth(camera)
+        points = points_from_depth(frame.depth_m, frame.intrinsics, max_depth_m=camera.far_m)
+        self._cloud_seq[camera.camera_id] += 1
+        self._cloud_pubs[camera.camera_id].put(PointCloud(
+            stamp=stamp, camera_id=camera.camera_id, points=np.asarray(points, dtype=np.float32),
+            seq=self._cloud_seq[camera.camera_id], intrinsics=frame.intrinsics).to_wire())
 
     def spin(self, stop: threading.Event) -> None:
         dt = self.world.dt_s
         joint_period = 1.0 / self.cfg.sim.joint_state_rate_hz
-        camera_period = 1.0 / self.cfg.camera.rate_hz
-        next_joint = next_camera = 0.0
+        next_joint = 0.0
+        next_camera = [0.0] * len(self.cfg.cameras)
         wall_start = time.monotonic()
         steps = 0
         while not stop.is_set():
@@ -132,13 +134,14 @@ class SimNode(Node):
             if due_steps - steps > MAX_CATCH_UP_STEPS:  # drop time we cannot catch up with
                 wall_start += (due_steps - steps) * dt
             sim_t = self.world.sim_time_s
-            if sim_t >= next_joint or sim_t >= next_camera:
+            if sim_t >= next_joint or sim_t >= min(next_camera):
                 # Also right before a render, so a joint state exists for the captured pose.
                 self._publish_joint_state()
                 next_joint = sim_t + joint_period
-            if sim_t >= next_camera:
-                self._publish_cloud()
-                next_camera = sim_t + camera_period
+            for i, camera in enumerate(self.cfg.cameras):
+                if sim_t >= next_camera[i]:
+                    self._publish_cloud(camera)
+                    next_camera[i] = sim_t + 1.0 / camera.rate_hz
             if self.cfg.sim.realtime:
                 delay = wall_start + (steps + 1) * dt - time.monotonic()
                 if delay > 0:
@@ -148,7 +151,8 @@ class SimNode(Node):
         self._queryable.undeclare()
         self._sub.undeclare()
         self._joint_pub.undeclare()
-        self._cloud_pub.undeclare()
+        for pub in self._cloud_pubs.values():
+            pub.undeclare()
         self.world.close()
 
 

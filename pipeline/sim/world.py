@@ -74,7 +74,7 @@ class SimWorld:
 
     Args:
         robot: Robot description; its URDF is loaded with a fixed base at the world origin.
-        camera: Depth camera rendered by `render_depth`.
+        camera: Depth camera `render_depth` renders unless given another.
         sim: Physics rate, following mode and obstacles.
 
     Raises:
@@ -208,15 +208,15 @@ class SimWorld:
         states = p.getJointStates(self._robot, self._joint_ids, physicsClientId=self._live_client())
         return np.array([s[0] for s in states]), np.array([s[1] for s in states])
 
-    def render_depth(self) -> DepthFrame:
-        """Render the configured camera with pybullet's CPU (tiny) renderer.
+    def render_depth(self, camera: CameraConfig | None = None) -> DepthFrame:
+        """Render a camera (the world's own by default) with pybullet's CPU (tiny) renderer.
 
         Returns:
             The depth image (linear metres along the optical axis), per-pixel body ids, the
             intrinsics and the camera pose it was rendered with.
         """
         cid = self._live_client()
-        cam = self._camera
+        cam = self._camera if camera is None else camera
         intrinsics = cam.intrinsics
         world_from_camera = cam.world_from_camera
         # pybullet takes OpenGL matrices flattened column-major.
