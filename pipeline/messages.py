@@ -54,6 +54,62 @@ class PointCloud(Message):
     """(N, 3) [m]; NaN/inf rows are allowed and dropped by perception."""
     seq: int = 0
     intrinsics: CameraIntrinsics | None = None
+    labels: np.ndarray | None = array_field("<i4", (None,), optional=True)
+    """(N,) object label of each point (a key of `label_names`), -1 for none; absent: unlabelled."""
+    label_names: dict[int, str] | None = None
+    """Label -> object name ('robot' for the arm). On the wire a map with decimal-string keys."""
+
+    def __post_init__(self) -> None:
+        _check_labels("PointCloud", self, self.points.shape[:1])
+
+    def _fields_to_dict(self) -> dict[str, Any]:
+        return _string_label_keys(super()._fields_to_dict())
+
+
+@dataclass(frozen=True)
+class DepthImage(Message):
+    """`camera/<cam>/depth` (pub): a depth image in the camera's optical frame, with its camera model."""
+
+    stamp: float
+    camera_id: str
+    intrinsics: CameraIntrinsics
+    depth_m: np.ndarray = array_field("<f4", (None, None), finite=False)
+    """(H, W) depth along the optical axis (z, not ray length) [m]; inf or NaN: no return."""
+    seq: int = 0
+    labels: np.ndarray | None = array_field("<i4", (None, None), optional=True)
+    """(H, W) object label per pixel (a key of `label_names`), -1 for none; absent: unlabelled."""
+    label_names: dict[int, str] | None = None
+    """Label -> object name ('robot' for the arm). On the wire a map with decimal-string keys."""
+
+    def __post_init__(self) -> None:
+        if self.depth_m.shape != (self.intrinsics.height, self.intrinsics.width):
+            raise ValueError(f"DepthImage: depth_m has shape {list(self.depth_m.shape)}, the intrinsics say "
+                             f"[{self.intrinsics.height}, {self.intrinsics.width}]")
+        _check_labels("DepthImage", self, self.depth_m.shape)
+
+    def _fields_to_dict(self) -> dict[str, Any]:
+        return _string_label_keys(super()._fields_to_dict())
+
+
+def _check_labels(owner: str, message: Any, shape: tuple[int, ...]) -> None:
+    """Labels match the points/pixels; label_names keys become ints (msgpack keys travel as strings)."""
+    if message.labels is not None and message.labels.shape != shape:
+        raise ValueError(f"{owner}: labels has shape {list(message.labels.shape)}, expected {list(shape)}")
+    if message.label_names is None:
+        return
+    names: dict[int, str] = {}
+    for key, name in message.label_names.items():
+        if isinstance(key, bool) or not isinstance(name, str) or not (
+                isinstance(key, int) or (isinstance(key, str) and key.lstrip("-").isdigit())):
+            raise ValueError(f"{owner}: label_names must map integer labels to names, got {key!r}: {name!r}")
+        names[int(key)] = name
+    object.__setattr__(message, "label_names", names)
+
+
+def _string_label_keys(out: dict[str, Any]) -> dict[str, Any]:
+    if "label_names" in out:
+        out["label_names"] = {str(k): v for k, v in out["label_names"].items()}
+    return out
 
 
 @dataclass(frozen=True)
@@ -69,6 +125,61 @@ class Occupancy(Message):
     """(N, 3) centres of occupied voxels before inflation [m]."""
     seq: int = 0
     frame_id: str = "world"
+
+
+@dataclass(frozen=True)
+class Clusters(Message):
+    """`perception/clusters` (pub): obstacles as connected groups of occupied voxels, world frame."""
+
+    stamp: float
+    """Stamp of the newest frame in the map [s]."""
+    ids: np.ndarray = array_field("<i4", (None,))
+    """(K,) cluster ids, unique within one message (not tracked across messages)."""
+    centroids_m: np.ndarray = array_field("<f4", (None, 3))
+    """(K, 3) mean of each cluster's voxel centres [m]."""
+    bbox_min_m: np.ndarray = array_field("<f4", (None, 3))
+    """(K, 3) lower corner of each cluster's axis-aligned box (voxel faces) [m]."""
+    bbox_max_m: np.ndarray = array_field("<f4", (None, 3))
+    """(K, 3) upper corner [m]."""
+    voxel_counts: np.ndarray = array_field("<i4", (None,))
+    """(K,) occupied voxels in each cluster."""
+    labels: tuple[str, ...] = ()
+    """K names: the most frequent label the cameras saw in the cluster (e.g. the simulator's
+    object name), or "" when the cameras carry no labels."""
+    seq: int = 0
+    frame_id: str = "world"
+
+
+@dataclass(frozen=True)
+class PerceptionClearRequest(Message):
+    """`perception/clear` (query) request: forget the whole occupancy map."""
+
+
+@dataclass(frozen=True)
+class PerceptionClearResponse(Message):
+    cleared_voxels: int
+    """Occupied voxels that were forgotten."""
+    ok: bool = True
+
+
+@dataclass(frozen=True)
+class PerceptionStatusRequest(Message):
+    """`perception/status` (query) request: counters and timings of the perception service."""
+
+
+@dataclass(frozen=True)
+class PerceptionStatusResponse(Message):
+    frames: int
+    """Frames integrated into the map."""
+    published: int
+    """Occupancy maps published."""
+    dropped: dict[str, int]
+    """Frames not integrated, by reason: bad_message, unknown_camera, no_joint_state,
+    out_of_order, no_intrinsics, stale (replaced by a newer frame before it was processed)."""
+    occupied_voxels: int
+    stage_ms: dict[str, float]
+    """Wall time per stage of the last frame [ms]."""
+    ok: bool = True
 
 
 @dataclass(frozen=True)
@@ -253,6 +364,22 @@ class ExecutorStatus(Message):
     def __post_init__(self) -> None:
         if self.state not in EXECUTOR_STATES:
             raise ValueError(f"ExecutorStatus: state must be one of {EXECUTOR_STATES}, got {self.state!r}")
+
+
+@dataclass(frozen=True)
+class ExecutorPath(Message):
+    """`executor/path` (latched pub): the path of every trajectory the executor accepted."""
+
+    stamp: float
+    trajectory_id: str
+    joint_names: tuple[str, ...]
+    path: FloatArray = array_field("<f8", (None, None))
+    """(K, n) waypoints as requested [rad]; row 0 is the start."""
+    duration_s: float = 0.0
+    """Trajectory duration [s]."""
+
+    def __post_init__(self) -> None:
+        _check_same_length("ExecutorPath", self.joint_names, path=self.path)
 
 
 @dataclass(frozen=True)
@@ -461,8 +588,198 @@ class SceneResponse(Message):
     ok: bool = True
 
 
+@dataclass(frozen=True)
+class ContactEvent(Message):
+    """`sim/contacts/events` (pub): a robot link started or stopped touching an obstacle (ground truth)."""
+
+    stamp: float
+    link: str
+    object: str
+    event: str
+    """'begin' or 'end'."""
+    distance_m: float = 0.0
+    """Deepest signed distance of the pair at this step [m] (<= 0 at 'begin'; 0 at 'end')."""
+    contact_count: int = 0
+    """Contact onsets counted so far (as `sim/contacts` reports them)."""
+
+    def __post_init__(self) -> None:
+        if self.event not in ("begin", "end"):
+            raise ValueError(f"ContactEvent: event must be 'begin' or 'end', got {self.event!r}")
+
+
+SIM_OBJECT_OPERATIONS: tuple[str, ...] = ("list", "add", "move", "remove", "set", "script", "cancel")
+OBJECT_MOTION_ACTIONS: tuple[str, ...] = ("move", "remove", "add")
+
+
+@dataclass(frozen=True)
+class ObjectMotionSpec(Message):
+    """One scripted change of a sim object in a `sim/objects` script request; travels nested, without `v`.
+
+    Fires once, when its trigger holds: `at_s` seconds (sim time) after the request, or when
+    `executor/status` reports `at_progress` of a trajectory (`trajectory_id`, or any trajectory
+    that is executing), or at once when neither is given. `move` slides the object in a
+    straight line (and a slerp) to the target pose over `duration_s`; `remove` removes it; `add`
+    adds `object` (its pose is the pose it appears at).
+    """
+
+    name: str
+    action: str = "move"
+    object: SceneObjectSpec | None = None
+    """add: the new object (type, shape, pose; `name` must match)."""
+    position_m: tuple[float, ...] | None = None
+    """move: (3,) target position in the world frame [m]; absent keeps the position."""
+    quat_xyzw: tuple[float, ...] | None = None
+    """move: (4,) target orientation; absent keeps the orientation."""
+    duration_s: float = 0.0
+    """move: time to slide to the target (sim time) [s]; 0 jumps."""
+    at_s: float | None = None
+    """Trigger: sim seconds after the request."""
+    at_progress: float | None = None
+    """Trigger: executor progress in [0, 1]."""
+    trajectory_id: str | None = None
+    """With at_progress: only this trajectory's progress counts."""
+
+    def __post_init__(self) -> None:
+        if self.action not in OBJECT_MOTION_ACTIONS:
+            raise _invalid(f"ObjectMotionSpec '{self.name}': action must be one of {list(OBJECT_MOTION_ACTIONS)}, "
+                           f"got {self.action!r}", "action")
+        if self.at_s is not None and self.at_progress is not None:
+            raise _invalid(f"ObjectMotionSpec '{self.name}': give at_s or at_progress, not both", "at_progress")
+        if self.at_progress is not None and not 0.0 <= self.at_progress <= 1.0:
+            raise _invalid(f"ObjectMotionSpec '{self.name}': at_progress must be in [0, 1], got {self.at_progress}",
+                           "at_progress")
+        if self.at_s is not None and self.at_s < 0:
+            raise _invalid(f"ObjectMotionSpec '{self.name}': at_s must be >= 0, got {self.at_s}", "at_s")
+        if self.duration_s < 0:
+            raise _invalid(f"ObjectMotionSpec '{self.name}': duration_s must be >= 0, got {self.duration_s}", "duration_s")
+        if self.action == "add" and (self.object is None or self.object.name != self.name):
+            raise _invalid(f"ObjectMotionSpec '{self.name}': add needs 'object' with the same name", "object")
+        if self.action == "move" and self.position_m is None and self.quat_xyzw is None:
+            raise _invalid(f"ObjectMotionSpec '{self.name}': move needs position_m or quat_xyzw", "position_m")
+        for key, length in (("position_m", 3), ("quat_xyzw", 4)):
+            value = getattr(self, key)
+            if value is not None and len(value) != length:
+                raise _invalid(f"ObjectMotionSpec '{self.name}': {key} needs {length} values, got {len(value)}", key)
+
+
+@dataclass(frozen=True)
+class SimObjectsRequest(Message):
+    """`sim/objects` (query) request: list, change or script the simulated obstacles (ground truth).
+
+    `list` changes nothing; `add` adds `objects` (replacing same-named ones); `move` sets the
+    pose of existing `objects`; `remove` drops `names`; `set` replaces the whole scene with
+    `objects` (none: an empty scene); `script` arms `motions`; `cancel` drops pending motions.
+    """
+
+    operation: str
+    objects: tuple[SceneObjectSpec, ...] = ()
+    names: tuple[str, ...] = ()
+    motions: tuple[ObjectMotionSpec, ...] = ()
+    request_id: str | None = None
+
+    def __post_init__(self) -> None:
+        op = self.operation
+        if op not in SIM_OBJECT_OPERATIONS:
+            raise _invalid(f"SimObjectsRequest: operation must be one of {list(SIM_OBJECT_OPERATIONS)}, got {op!r}",
+                           "operation")
+        if op in ("add", "move") and not self.objects:
+            raise _invalid(f"SimObjectsRequest: {op} needs 'objects'", "objects")
+        if op == "remove" and not self.names:
+            raise _invalid("SimObjectsRequest: remove needs 'names'", "names")
+        if op == "script" and not self.motions:
+            raise _invalid("SimObjectsRequest: script needs 'motions'", "motions")
+        for key in ("objects", "names", "motions"):
+            allowed = {"objects": ("add", "move", "set"), "names": ("remove",), "motions": ("script",)}[key]
+            if getattr(self, key) and op not in allowed:
+                raise _invalid(f"SimObjectsRequest: {op} takes no '{key}'", key)
+        names = [o.name for o in self.objects]
+        for i, name in enumerate(names):
+            if not name or name in names[:i]:
+                raise _invalid(f"SimObjectsRequest: object name {name!r} is empty or given twice", f"objects[{i}].name")
+            if name == "robot":
+                raise _invalid("SimObjectsRequest: 'robot' is reserved for the arm", f"objects[{i}].name")
+        for i, obj in enumerate(self.objects):
+            if op in ("add", "set"):
+                for key in ("type", "position_m"):
+                    if getattr(obj, key) is None:
+                        raise _invalid(f"SimObjectsRequest: {op} of '{obj.name}' needs {key}", f"objects[{i}].{key}")
+            if op == "move":
+                shape_keys = [k for k in _SHAPE_KEYS if getattr(obj, k) is not None]
+                if shape_keys:
+                    raise _invalid(f"SimObjectsRequest: move changes only the pose; objects[{i}] has {shape_keys[0]}",
+                                   f"objects[{i}].{shape_keys[0]}")
+                if obj.position_m is None and obj.quat_xyzw is None:
+                    raise _invalid(f"SimObjectsRequest: move of '{obj.name}' needs position_m or quat_xyzw",
+                                   f"objects[{i}].position_m")
+            if obj.frame_id not in (None, "world"):
+                raise _invalid(f"SimObjectsRequest: sim objects are posed in 'world', got {obj.frame_id!r}",
+                               f"objects[{i}].frame_id")
+
+
+@dataclass(frozen=True)
+class SimObjectsResponse(Message):
+    """`sim/objects` (query) success reply: every sim obstacle at its true pose after the request."""
+
+    stamp: float
+    """Wall time of the snapshot [s]."""
+    sim_time_s: float
+    """Simulated time since the sim started [s]."""
+    revision: int
+    """+1 for every request or motion that changed the scene."""
+    objects: tuple[SceneObjectState, ...] = ()
+    pending_motions: int = 0
+    """Scripted motions armed but not finished."""
+    fired_motions: int = 0
+    """Scripted motions triggered since the sim started."""
+    request_id: str | None = None
+    ok: bool = True
+
+
+@dataclass(frozen=True)
+class SimStatsRequest(Message):
+    """`sim/stats` (query) request: how well the sim keeps real time."""
+
+    reset: bool = False
+    """Start a new measurement window after answering."""
+
+
+@dataclass(frozen=True)
+class CameraStats(Message):
+    """Frames of one camera in a `sim/stats` reply; travels nested, without `v`."""
+
+    camera_id: str
+    frames: int = 0
+    render_ms_p50: float = 0.0
+    render_ms_max: float = 0.0
+    frame_period_ms_max: float = 0.0
+    """Longest gap between two frames' stamps [ms]."""
+
+
+@dataclass(frozen=True)
+class SimStatsResponse(Message):
+    """`sim/stats` (query) success reply: the physics loop's timing over the measurement window."""
+
+    wall_time_s: float
+    sim_time_s: float
+    """Simulated time advanced in the window [s]."""
+    real_time_factor: float
+    """sim_time_s / wall_time_s; 1.0 keeps real time."""
+    steps: int
+    step_lateness_ms_p50: float
+    """How late physics steps ran against their wall-clock schedule: median [ms]."""
+    step_lateness_ms_p99: float
+    step_lateness_ms_max: float
+    dropped_time_s: float = 0.0
+    """Simulated time skipped because the loop fell too far behind [s]."""
+    joint_state_period_ms_max: float = 0.0
+    """Longest gap between two published joint states [ms]."""
+    cameras: tuple[CameraStats, ...] = ()
+    ok: bool = True
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     JointState, PointCloud, Occupancy, PlanRequest, PlanResponse, ExecuteRequest, ExecuteResponse,
     StopRequest, StopResponse, Setpoint, ExecutorStatus, ContactsRequest, ContactsResponse, ErrorReply,
-    SceneRequest, SceneResponse,
+    SceneRequest, SceneResponse, DepthImage, ContactEvent, SimObjectsRequest, SimObjectsResponse, SimStatsRequest,
+    SimStatsResponse,
 )

@@ -22,6 +22,13 @@ class Keys:
     def all_camera_clouds(self) -> str:
         return f"{self.root}/camera/*/cloud"
 
+    def camera_depth(self, camera_id: str) -> str:
+        return f"{self.root}/camera/{camera_id}/depth"
+
+    @property
+    def all_camera_depths(self) -> str:
+        return f"{self.root}/camera/*/depth"
+
     @property
     def joint_states(self) -> str:
         return f"{self.root}/robot/joint_states"
@@ -29,6 +36,18 @@ class Keys:
     @property
     def occupancy(self) -> str:
         return f"{self.root}/perception/occupancy"
+
+    @property
+    def clusters(self) -> str:
+        return f"{self.root}/perception/clusters"
+
+    @property
+    def perception_clear(self) -> str:
+        return f"{self.root}/perception/clear"
+
+    @property
+    def perception_status(self) -> str:
+        return f"{self.root}/perception/status"
 
     @property
     def plan(self) -> str:
@@ -55,8 +74,24 @@ class Keys:
         return f"{self.root}/executor/status"
 
     @property
+    def executor_path(self) -> str:
+        return f"{self.root}/executor/path"
+
+    @property
     def contacts(self) -> str:
         return f"{self.root}/sim/contacts"
+
+    @property
+    def contact_events(self) -> str:
+        return f"{self.root}/sim/contacts/events"
+
+    @property
+    def sim_objects(self) -> str:
+        return f"{self.root}/sim/objects"
+
+    @property
+    def sim_stats(self) -> str:
+        return f"{self.root}/sim/stats"
 
     def alive(self, service: str) -> str:
         return f"{self.root}/alive/{service}"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from robonav.pipeline.config import require
 
@@ -28,10 +29,38 @@ class PerceptionConfig:
     the planner treats as free. Assuming what is seen rests on solid matter (true for objects
     on a table or floor; conservative under overhangs) fills objects' unseen interiors and
     back halves. Rays that later pass through the filled space clear it as usual."""
-    max_update_rate_hz: float = 10.0
-    """Clouds arriving faster than this are dropped (latest-only)."""
+    max_update_rate_hz: float = 30.0
+    """Frames arriving faster than this are dropped (latest-only)."""
+    clustering: Literal["components", "dbscan"] = "components"
+    """How occupied voxels are grouped into `perception/clusters`: 26-connected components on
+    the voxel grid, or open3d's DBSCAN on voxel centres."""
+    cluster_min_voxels: int = 3
+    """Clusters with fewer voxels are not published."""
+    clusters_rate_hz: float = 5.0
+    """`perception/clusters` is published at most this often."""
     prob_hit: float = 0.7
-    prob_miss: float = 0.4
+    """Occupancy probability of a voxel with a return in it; one hit makes an unknown voxel occupied."""
+    prob_miss: float = 0.2
+    """Occupancy probability of a voxel seen through. 0.2 frees a voxel saturated at octomap's
+    clamp (0.971) after three misses: a removed object leaves the map within three frames."""
+    clearing: Literal["projection", "raycast"] = "projection"
+    """How free space is found: project occupied voxels into the depth image (needs clouds
+    with intrinsics or depth images; cost grows with the occupied voxels), or cast every ray
+    through an octomap tree (any cloud; cost grows with points x range)."""
+    pixel_stride: int = 2
+    """Projection: every n-th pixel in both directions becomes a return (at 2, a 640x480 frame
+    gives 76,800 returns, a 4 mm spacing at 1.5 m: still several per 2 cm voxel)."""
+    outlier_min_neighbors: int = 2
+    """Projection: a hit voxel needs this many hit voxels among its 26 neighbours in the same
+    frame, or it is dropped as an outlier (0 turns the filter off)."""
+    near_m: float = 0.05
+    """Projection: voxels closer to the camera than this get no free-space evidence [m]."""
+    clearing_margin_m: float = 0.015
+    """Projection: a voxel is seen through only if the depth behind it exceeds its own depth by
+    this much: about half a voxel, plus the depth noise of the camera (a real camera needs more) [m]."""
+    clearing_max_footprint_px: int = 6
+    """Projection: at most this many pixels around a voxel's centre are checked for a return
+    in front of it (its footprint is half a voxel wide, up to this)."""
 
     def __post_init__(self) -> None:
         require(self.resolution_m > 0, f"perception.resolution_m must be > 0, got {self.resolution_m}")
@@ -44,3 +73,16 @@ class PerceptionConfig:
         require(self.max_update_rate_hz > 0, f"perception.max_update_rate_hz must be > 0, got {self.max_update_rate_hz}")
         require(0.5 < self.prob_hit < 1.0, f"perception.prob_hit must be in (0.5, 1), got {self.prob_hit}")
         require(0.0 < self.prob_miss < 0.5, f"perception.prob_miss must be in (0, 0.5), got {self.prob_miss}")
+        require(self.clustering in ("components", "dbscan"),
+                f"perception.clustering must be 'components' or 'dbscan', got {self.clustering!r}")
+        require(self.cluster_min_voxels >= 1, f"perception.cluster_min_voxels must be >= 1, got {self.cluster_min_voxels}")
+        require(self.clusters_rate_hz > 0, f"perception.clusters_rate_hz must be > 0, got {self.clusters_rate_hz}")
+        require(self.clearing in ("projection", "raycast"),
+                f"perception.clearing must be 'projection' or 'raycast', got {self.clearing!r}")
+        require(self.pixel_stride >= 1, f"perception.pixel_stride must be >= 1, got {self.pixel_stride}")
+        require(0 <= self.outlier_min_neighbors <= 26,
+                f"perception.outlier_min_neighbors must be in [0, 26], got {self.outlier_min_neighbors}")
+        require(self.near_m >= 0, f"perception.near_m must be >= 0, got {self.near_m}")
+        require(self.clearing_margin_m >= 0, f"perception.clearing_margin_m must be >= 0, got {self.clearing_margin_m}")
+        require(self.clearing_max_footprint_px >= 0,
+                f"perception.clearing_max_footprint_px must be >= 0, got {self.clearing_max_footprint_px}")

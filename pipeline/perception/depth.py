@@ -14,6 +14,7 @@ import numpy as np
 import numpy.typing as npt
 
 from robonav.pipeline.camera import CameraIntrinsics
+from robonav.pipeline.perception.voxel_kernels import zbuffer
 
 # A z-buffer value this close to 1 is the cleared background: the tiny renderer clears to
 # 1 - 1 ulp of float32, not exactly 1. With near/far = 0.1/3 m this only hides surfaces
@@ -102,3 +103,25 @@ def depth_from_opengl_buffer(
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = far_m * near_m / (far_m - (far_m - near_m) * zb)
     return np.where(zb >= _BACKGROUND_Z_BUFFER, np.inf, depth).astype(np.float32)
+
+
+def depth_from_points(points_camera: npt.ArrayLike, intrinsics: CameraIntrinsics) -> tuple[npt.NDArray[np.float32], int]:
+    """Render a camera-frame cloud back into a depth image (nearest point per pixel).
+
+    A cloud made from a depth image (`points_from_depth`) maps back onto its own pixels, so
+    this recovers the image, with inf where no point landed ("no return").
+
+    Args:
+        points_camera: (N, 3) points in the optical frame [m]; NaN/inf rows are skipped.
+        intrinsics: The camera the points came from.
+
+    Returns:
+        The (H, W) float32 depth image [m] and the number of points that did not land in it.
+    """
+    points = np.asarray(points_camera)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points_camera must have shape (N, 3), got {points.shape}")
+    depth = np.full((intrinsics.height, intrinsics.width), np.inf, dtype=np.float32)
+    k = intrinsics
+    dropped = zbuffer(np.ascontiguousarray(points, dtype=np.float64), k.fx, k.fy, k.cx, k.cy, depth)
+    return depth, int(dropped)

@@ -207,7 +207,7 @@ class OccupancyMap:
             `occupied_centers_m()`, sorted by voxel key.
         """
         keys = self._occupied_keys()
-        offsets = _inflation_offsets(self._config.inflation_m, self.resolution_m)
+        offsets = inflation_offsets(self._config.inflation_m, self.resolution_m)
         if keys.size and offsets.shape[0] > 1:
             keys = (keys[:, None] + _pack_offsets(offsets)[None, :]).ravel()
         return _keys_to_centres(np.unique(keys), self.resolution_m)
@@ -275,7 +275,7 @@ _CUBE_TRIANGLES = np.array(
 )
 
 
-def _inflation_offsets(inflation_m: float, resolution_m: float) -> npt.NDArray[np.int64]:
+def inflation_offsets(inflation_m: float, resolution_m: float) -> npt.NDArray[np.int64]:
     """(K, 3) integer voxel offsets whose cube is closer than r voxels to the origin voxel."""
     # The small tolerance keeps e.g. 0.04 / 0.02 from rounding up to 3 voxels.
     r = math.ceil(inflation_m / resolution_m - 1e-9)

@@ -69,6 +69,20 @@ class SelfFilter:
         """Outward growth of every hull [m]."""
         return self._padding_m
 
+    def bounds_m(self, world_from_link: Mapping[str, npt.ArrayLike]) -> tuple[FloatArray, FloatArray]:
+        """World-frame box (lower, upper) [m] containing every padded link at these poses."""
+        lows, highs = [], []
+        for name, hull in self._hulls.items():
+            if name not in world_from_link:
+                continue
+            pose = np.asarray(world_from_link[name], dtype=np.float64)
+            centre = pose[:3, :3] @ hull.centre_link_m + pose[:3, 3]
+            lows.append(centre - hull.radius_m)
+            highs.append(centre + hull.radius_m)
+        if not lows:
+            return np.zeros(3), np.zeros(3) - 1.0  # empty box
+        return np.min(lows, axis=0), np.max(highs, axis=0)
+
     def outside_mask(self, points_world: npt.ArrayLike, world_from_link: Mapping[str, npt.ArrayLike]) -> BoolArray:
         """Mask of points outside every padded link hull.
 

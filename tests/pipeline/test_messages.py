@@ -13,6 +13,8 @@ from robonav.pipeline.messages import (ALL_MESSAGES, ContactsRequest, ContactsRe
                                        ExecuteResponse, ExecutorStatus, JointState, Occupancy, PlanRequest,
                                        PlanResponse, PointCloud, SceneObjectSpec, SceneObjectState, SceneRequest,
                                        SceneResponse, Setpoint, StopRequest, StopResponse, decode_reply)
+from robonav.pipeline.messages import (CameraStats, ContactEvent, DepthImage, ObjectMotionSpec, SimObjectsRequest,
+                                       SimObjectsResponse, SimStatsRequest, SimStatsResponse)
 from robonav.pipeline.wire import SCHEMA_VERSION, ErrorCode, Message, ProtocolError
 
 RNG = np.random.default_rng(7)
@@ -58,6 +60,25 @@ EXAMPLES: list[Message] = [
                 workspace_min_m=np.array([-1.0, -1.0, 0.0]), workspace_max_m=np.array([1.0, 1.0, 1.5])),
     PlanResponse(joint_names=NAMES, path=RNG.normal(size=(2, 7)), planner_id="direct", goal_index=2,
                  goal_positions=RNG.normal(size=7)),
+    PointCloud(stamp=2.5, camera_id="cam1", points=RNG.normal(size=(4, 3)).astype(np.float32),
+               labels=np.array([0, 2, -1, 2], dtype=np.int32), label_names={0: "robot", 2: "crate"}),
+    DepthImage(stamp=2.6, camera_id="cam1", intrinsics=CameraIntrinsics(4, 2, 3.0, 3.0, 1.5, 0.5),
+               depth_m=np.array([[1.0, np.inf, np.inf, 2.0], [0.5, 0.6, 0.7, 0.8]], dtype=np.float32), seq=9,
+               labels=np.array([[1, -1, -1, 0], [1, 1, 1, 1]], dtype=np.int32), label_names={0: "robot", 1: "box"}),
+    ContactEvent(stamp=6.0, link="panda_hand", object="box", event="begin", distance_m=-0.002, contact_count=1),
+    SimObjectsRequest(operation="script", motions=(
+        ObjectMotionSpec("box", position_m=(0.5, 0.0, 0.4), duration_s=1.0, at_progress=0.3, trajectory_id="t"),
+        ObjectMotionSpec("can", action="add", at_s=2.0,
+                         object=SceneObjectSpec("can", "cylinder", (0.4, 0.2, 0.3), radius_m=0.05, length_m=0.2)),
+    ), request_id="o1"),
+    SimObjectsRequest(operation="set", objects=(SceneObjectSpec("box", "box", (0.5, 0.0, 0.2), size_m=(0.1, 0.2, 0.3)),)),
+    SimObjectsResponse(stamp=7.0, sim_time_s=3.5, revision=2, objects=(
+        SceneObjectState("box", "box", (0.5, 0.0, 0.2), (0.0, 0.0, 0.0, 1.0), size_m=(0.1, 0.2, 0.3)),),
+        pending_motions=1, fired_motions=1, request_id="o1"),
+    SimStatsRequest(reset=True),
+    SimStatsResponse(wall_time_s=10.0, sim_time_s=9.99, real_time_factor=0.999, steps=2398, step_lateness_ms_p50=0.1,
+                     step_lateness_ms_p99=4.0, step_lateness_ms_max=20.0, dropped_time_s=0.0,
+                     joint_state_period_ms_max=30.0, cameras=(CameraStats("cam0", frames=50, render_ms_p50=90.0),)),
 ]
 
 
@@ -86,7 +107,7 @@ def test_wire_form_is_plain_msgpack(message: Message) -> None:
     assert all(k == k.lower() and " " not in k for k in obj)
     for value in obj.values():
         if isinstance(value, dict) and "dtype" in value:
-            assert value["dtype"] in ("<f4", "<f8")
+            assert value["dtype"] in ("<f4", "<f8", "<i4")
             assert len(value["data"]) == int(np.prod(value["shape"])) * int(value["dtype"][-1])
 
 
@@ -148,3 +169,19 @@ def test_error_codes_are_a_closed_list() -> None:
     with pytest.raises(ValueError):
         ErrorReply(code="SOMETHING_ELSE", message="x")
     assert {c.value for c in ErrorCode} >= {"START_IN_COLLISION", "GOAL_IN_COLLISION", "NO_SOLUTION", "INVALID_REQUEST"}
+
+
+def test_cloud_labels_must_match_points_and_name_integer_labels() -> None:
+    points = {"dtype": "<f4", "shape": [2, 3], "data": np.zeros(6, np.float32).tobytes()}
+    base = {"v": 1, "stamp": 1.0, "camera_id": "c", "points": points}
+    with pytest.raises(ProtocolError, match="labels has shape") as info:
+        PointCloud.from_wire(msgpack.packb(base | {"labels": {"dtype": "<i4", "shape": [3],
+                                                              "data": np.zeros(3, np.int32).tobytes()}}))
+    assert info.value.code is ErrorCode.INVALID_REQUEST
+    with pytest.raises(ProtocolError, match="integer labels"):
+        PointCloud.from_wire(msgpack.packb(base | {"label_names": {"box": "box"}}))
+    cloud = PointCloud.from_wire(msgpack.packb(base | {"label_names": {"3": "box"}}))
+    assert cloud.label_names == {3: "box"} and cloud.labels is None
+    with pytest.raises(ValueError, match="intrinsics say"):
+        DepthImage(stamp=1.0, camera_id="c", intrinsics=CameraIntrinsics(4, 2, 1.0, 1.0, 1.5, 0.5),
+                   depth_m=np.zeros((4, 2), np.float32))

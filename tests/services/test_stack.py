@@ -12,7 +12,15 @@ import numpy as np
 import pytest
 import zenoh
 
-from robonav.pipeline.messages import ErrorReply, ExecuteResponse, PlanResponse
+from robonav.pipeline.messages import (
+    Clusters,
+    ErrorReply,
+    ExecuteResponse,
+    PerceptionClearResponse,
+    PerceptionStatusResponse,
+    PlanResponse,
+    decode_reply,
+)
 from robonav.services.client import RobonavClient
 from robonav.services.config import load_config
 
@@ -125,28 +133,75 @@ def test_example_client_plans_and_executes_with_only_zenoh_and_msgpack(client: R
     assert client.wait_for(lambda: np.max(np.abs(client.joint_state.position - goal)) < 1e-3, 5.0)  # type: ignore[union-attr]
 
 
+def _perception_status(session: zenoh.Session) -> PerceptionStatusResponse:
+    replies = list(session.get("robonav/arm0/perception/status", timeout=5.0))
+    assert len(replies) == 1 and replies[0].ok is not None
+    status = decode_reply(replies[0].ok.payload.to_bytes(), PerceptionStatusResponse)
+    assert isinstance(status, PerceptionStatusResponse)
+    return status
+
+
 def test_perception_survives_bad_clouds(client: RobonavClient, session: zenoh.Session) -> None:
-    key = "robonav/arm0/camera/cam0/cloud"
+    # Its own key, so the sim's clouds on cam0 do not replace these before they are processed.
+    key = "robonav/arm0/camera/test/cloud"
     nan_points = np.full((100, 3), np.nan, dtype=np.float32)
+    ones = {"dtype": "<f4", "shape": [1, 3], "data": np.ones(3, np.float32).tobytes()}
+    # Built when sent: a frame is only integrated if it is newer than the camera's last one.
     bad_payloads = [
-        b"\x00garbage",
-        msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0", "points": "none"}),
-        msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0",
-                       "points": {"dtype": "<f4", "shape": [100, 2], "data": np.zeros(200, np.float32).tobytes()}}),
-        msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0",
-                       "points": {"dtype": "<f4", "shape": [100, 3], "data": nan_points.tobytes()}}),
-        msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0",
-                       "points": {"dtype": "<f4", "shape": [0, 3], "data": b""}}),
-        msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "nobody",
-                       "points": {"dtype": "<f4", "shape": [1, 3], "data": np.ones(3, np.float32).tobytes()}}),
+        lambda: b"\x00garbage",
+        lambda: msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0", "points": "none"}),
+        lambda: msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0", "points": {
+            "dtype": "<f4", "shape": [100, 2], "data": np.zeros(200, np.float32).tobytes()}}),
+        lambda: msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0", "points": {
+            "dtype": "<f4", "shape": [100, 3], "data": nan_points.tobytes()}}),
+        lambda: msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0",
+                               "points": {"dtype": "<f4", "shape": [0, 3], "data": b""}}),
+        lambda: msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "nobody", "points": ones}),
+        lambda: msgpack.packb({"v": 1, "stamp": time.time() - 60.0, "camera_id": "cam0", "points": ones}),
     ]
+    before = _perception_status(session).dropped
     for payload in bad_payloads:
-        session.put(key, payload)
+        session.put(key, payload())
         time.sleep(0.15)  # latest-only: give each its own cycle
     after = time.time()
     assert client.wait_for(lambda: client.occupancy is not None and client.occupancy.stamp > after, 10.0), \
         "perception stopped publishing maps after bad clouds"
     assert "perception" in client.alive_services()
+    dropped = _perception_status(session).dropped
+    grew = {reason: dropped.get(reason, 0) - before.get(reason, 0) for reason in dropped}
+    assert grew.get("bad_message", 0) + grew.get("stale", 0) >= 3, dropped
+    assert grew.get("empty", 0) >= 1 and grew.get("unknown_camera", 0) >= 1 and grew.get("out_of_order", 0) >= 1, dropped
+
+
+def test_perception_clear_forgets_the_map_until_the_next_frame(client: RobonavClient, session: zenoh.Session) -> None:
+    assert client.wait_for(lambda: client.occupancy is not None and len(client.occupancy.occupied_centers_m) > 0, 20.0)
+    replies = list(session.get("robonav/arm0/perception/clear", timeout=5.0))
+    assert len(replies) == 1 and replies[0].ok is not None
+    cleared = decode_reply(replies[0].ok.payload.to_bytes(), PerceptionClearResponse)
+    assert isinstance(cleared, PerceptionClearResponse) and cleared.cleared_voxels > 0
+    # The next camera frame maps the scene again.
+    after = time.time()
+    assert client.wait_for(lambda: client.occupancy is not None and client.occupancy.stamp > after
+                           and len(client.occupancy.occupied_centers_m) > 0, 10.0)
+
+
+def test_perception_publishes_labelled_clusters(client: RobonavClient, session: zenoh.Session) -> None:
+    assert client.wait_for(lambda: client.occupancy is not None, 30.0)
+    received: list[Clusters] = []
+    sub = session.declare_subscriber("robonav/arm0/perception/clusters",
+                                     lambda sample: received.append(Clusters.from_wire(sample.payload.to_bytes())))
+    try:
+        deadline = time.monotonic() + 10.0
+        while not received and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        sub.undeclare()
+    assert received, "no clusters published"
+    clusters = received[-1]
+    # The table, the pillar, the crate and the can are separate clusters.
+    assert len(clusters.ids) >= 4
+    assert len(clusters.labels) == len(clusters.ids)
+    assert np.all(clusters.bbox_min_m <= clusters.centroids_m) and np.all(clusters.centroids_m <= clusters.bbox_max_m)
 
 
 def test_joint_history_matches_cloud_stamps() -> None:

@@ -1,0 +1,221 @@
+"""Projection-cleared occupancy map on real pybullet renders: mapping, clearing, self filter, fusion, clusters."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from robonav.pipeline.camera import CameraConfig
+from robonav.pipeline.perception.clusters import cluster_voxels
+from robonav.pipeline.perception.config import PerceptionConfig
+from robonav.pipeline.perception.depth import depth_from_points, points_from_depth
+from robonav.pipeline.perception.projection_map import ProjectionOccupancyMap
+from robonav.pipeline.perception.self_filter import SelfFilter
+from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.sim.config import SimConfig
+from robonav.pipeline.sim.world import SimWorld
+from robonav.pipeline.transforms import look_at_quat_xyzw
+
+ROBOT = RobotConfig()
+HOME = np.array(ROBOT.home_position_rad)
+RES = 0.02
+CONFIG = PerceptionConfig(resolution_m=RES, fill_below_surfaces=False)
+TABLE = SceneObject("table", "box", (0.55, 0.0, 0.1), size_m=(0.5, 1.2, 0.2))
+BOX = SceneObject("box", "box", (0.55, 0.25, 0.3), size_m=(0.16, 0.16, 0.2))
+MOVED = dataclasses.replace(BOX, position_m=(0.55, 0.35, 0.3))
+CAN = SceneObject("can", "cylinder", (0.55, -0.3, 0.32), radius_m=0.05, length_m=0.24)
+
+
+def camera(eye: tuple[float, float, float], camera_id: str = "cam0") -> CameraConfig:
+    return CameraConfig(camera_id=camera_id, width=320, height=240, position_m=eye,
+                        quat_xyzw=tuple(look_at_quat_xyzw(eye, (0.55, 0.0, 0.25))))
+
+
+FRONT = camera((1.45, 0.55, 1.05))
+BACK = camera((-0.2, -0.9, 1.0), "cam1")
+
+
+@pytest.fixture(scope="module")
+def robot() -> RobotModel:
+    return RobotModel.from_config(ROBOT)
+
+
+@pytest.fixture(scope="module")
+def self_filter(robot: RobotModel) -> SelfFilter:
+    return SelfFilter(robot.link_hull_vertices, 0.04)
+
+
+def render(*objects: SceneObject, cam: CameraConfig = FRONT, q: np.ndarray = HOME):
+    with SimWorld(ROBOT, cam, SimConfig(objects=objects, follow="kinematic", gravity=False)) as world:
+        world.set_joint_target(q)
+        world.step()
+        return world.render_depth()
+
+
+def integrate(m: ProjectionOccupancyMap, frame, robot: RobotModel, self_filter: SelfFilter, q: np.ndarray = HOME):
+    return m.integrate_depth(frame.depth_m, frame.intrinsics, frame.world_from_camera, self_filter=self_filter,
+                             world_from_link=robot.link_poses(q), labels=frame.segmentation)
+
+
+def voxels_inside(m: ProjectionOccupancyMap, obj: SceneObject, shrink_m: float = 0.0) -> int:
+    centres = m.occupied_centers_m()
+    lo = np.asarray(obj.position_m) - np.asarray(obj.size_m) / 2 + shrink_m
+    hi = np.asarray(obj.position_m) + np.asarray(obj.size_m) / 2 - shrink_m
+    return int(np.all((centres >= lo) & (centres <= hi), axis=1).sum())
+
+
+def near_box(m: ProjectionOccupancyMap, obj: SceneObject, margin_m: float) -> int:
+    """Occupied voxels in the box grown by `margin_m`, above the table top's own voxel layer."""
+    centres = m.occupied_centers_m()
+    lo = np.asarray(obj.position_m) - np.asarray(obj.size_m) / 2 - margin_m
+    hi = np.asarray(obj.position_m) + np.asarray(obj.size_m) / 2 + margin_m
+    above_table = centres[:, 2] > TABLE.position_m[2] + TABLE.size_m[2] / 2 + RES
+    return int((np.all((centres >= lo) & (centres <= hi), axis=1) & above_table).sum())
+
+
+def test_a_box_is_mapped_on_its_visible_faces(robot: RobotModel, self_filter: SelfFilter) -> None:
+    m = ProjectionOccupancyMap(CONFIG)
+    update = integrate(m, render(TABLE, BOX), robot, self_filter)
+    assert update.hit_voxels > 0 and update.newly_occupied == m.voxel_count
+    # Every occupied voxel is on the table or the box, not in the air around them.
+    centres = m.occupied_centers_m()
+    on_something = np.zeros(len(centres), dtype=bool)
+    for obj in (TABLE, BOX):
+        lo = np.asarray(obj.position_m) - np.asarray(obj.size_m) / 2 - RES
+        hi = np.asarray(obj.position_m) + np.asarray(obj.size_m) / 2 + RES
+        on_something |= np.all((centres >= lo) & (centres <= hi), axis=1)
+    assert on_something.all(), centres[~on_something][:5]
+    # The top face of the box (0.16 m square at 2 cm) is fully there.
+    top = centres[(np.abs(centres[:, 2] - 0.40) < 0.0201) & (np.abs(centres[:, 0] - 0.55) < 0.07)
+                  & (np.abs(centres[:, 1] - 0.25) < 0.07)]
+    assert len(top) >= 36
+
+
+def test_removed_box_clears_within_three_frames(robot: RobotModel, self_filter: SelfFilter) -> None:
+    m = ProjectionOccupancyMap(CONFIG)
+    with_box, without = render(TABLE, BOX), render(TABLE)
+    for _ in range(10):  # saturate: the worst case for clearing
+        integrate(m, with_box, robot, self_filter)
+    assert near_box(m, BOX, 0.0) > 50
+    for frame in range(3):
+        integrate(m, without, robot, self_filter)
+    assert near_box(m, BOX, 0.0) == 0
+    assert m.voxel_count > 0  # the table stays
+
+
+def test_box_moved_10_cm_leaves_nothing_at_its_old_place(robot: RobotModel, self_filter: SelfFilter) -> None:
+    m = ProjectionOccupancyMap(CONFIG)
+    before, after = render(TABLE, BOX), render(TABLE, MOVED)
+    for _ in range(10):
+        integrate(m, before, robot, self_filter)
+    for _ in range(3):
+        integrate(m, after, robot, self_filter)
+    centres = m.occupied_centers_m()
+    lo_new = np.asarray(MOVED.position_m) - np.asarray(MOVED.size_m) / 2 - RES
+    hi_new = np.asarray(MOVED.position_m) + np.asarray(MOVED.size_m) / 2 + RES
+    lo_old = np.asarray(BOX.position_m) - np.asarray(BOX.size_m) / 2
+    hi_old = np.asarray(BOX.position_m) + np.asarray(BOX.size_m) / 2
+    in_old = np.all((centres >= lo_old) & (centres <= hi_old), axis=1) & (centres[:, 2] > 0.2 + RES)
+    in_new = np.all((centres >= lo_new) & (centres <= hi_new), axis=1)
+    assert not (in_old & ~in_new).any(), centres[in_old & ~in_new][:5]
+    assert in_new.sum() > 50
+
+
+def test_arm_moving_through_the_view_leaves_no_voxels(robot: RobotModel, self_filter: SelfFilter) -> None:
+    m = ProjectionOccupancyMap(CONFIG)
+    poses = [HOME + np.array([a, 0.3 * s, 0.0, 0.4 * s, 0.0, 0.2, 0.0]) for a, s in
+             ((-0.8, 1), (-0.4, -1), (0.0, 1), (0.4, -1), (0.8, 1))]
+    for q in poses:
+        integrate(m, render(TABLE, q=q), robot, self_filter, q)
+    # Only the table is left: nothing above its top face (0.2 m) plus a voxel.
+    centres = m.occupied_centers_m()
+    assert m.voxel_count > 100
+    assert (centres[:, 2] <= 0.2 + RES).all(), centres[centres[:, 2] > 0.2 + RES][:5]
+
+
+def test_two_cameras_fuse_into_one_map(robot: RobotModel, self_filter: SelfFilter) -> None:
+    front, both = ProjectionOccupancyMap(CONFIG), ProjectionOccupancyMap(CONFIG)
+    a, b = render(TABLE, BOX), render(TABLE, BOX, cam=BACK)
+    integrate(front, a, robot, self_filter)
+    integrate(both, a, robot, self_filter)
+    integrate(both, b, robot, self_filter)
+    # The back camera sees the faces of the box that face it (-x and -y sides).
+    def far_side(m: ProjectionOccupancyMap) -> int:
+        centres = m.occupied_centers_m()
+        lo = np.asarray(BOX.position_m) - np.asarray(BOX.size_m) / 2
+        return int(((np.abs(centres[:, 0] - (lo[0] + RES / 2)) < RES) & (centres[:, 2] > 0.22)
+                    & (np.abs(centres[:, 1] - BOX.position_m[1]) < 0.07)).sum())
+    assert far_side(both) > far_side(front) + 10
+    # Neither camera clears what the other one sees.
+    assert both.voxel_count >= front.voxel_count
+
+
+def test_clusters_match_the_sim_objects(robot: RobotModel, self_filter: SelfFilter) -> None:
+    m = ProjectionOccupancyMap(CONFIG)
+    with SimWorld(ROBOT, FRONT, SimConfig(objects=(TABLE, BOX, CAN), follow="kinematic", gravity=False)) as world:
+        frame = world.render_depth()
+        names = world.body_labels()
+    integrate(m, frame, robot, self_filter)
+    occupied = m.occupied_indices()
+    found = cluster_voxels(m.ijk(occupied), m.centres_m(occupied), RES, labels=m.labels_of(occupied))
+    by_label = {names.get(int(i), "?"): k for k, i in enumerate(found.label_ids)}
+    assert {"table", "box", "can"} <= set(by_label), by_label
+    for obj in (BOX, CAN):
+        k = by_label[obj.name]
+        assert np.all(found.bbox_min_m[k][:2] <= np.asarray(obj.position_m[:2]) + 0.01)
+        assert np.all(found.bbox_max_m[k][:2] >= np.asarray(obj.position_m[:2]) - 0.01)
+    dbscan = cluster_voxels(m.ijk(occupied), m.centres_m(occupied), RES, labels=m.labels_of(occupied), method="dbscan")
+    assert dbscan.count == found.count
+
+
+def test_a_cloud_rendered_back_to_depth_maps_like_the_depth_image(robot: RobotModel, self_filter: SelfFilter) -> None:
+    frame = render(TABLE, BOX)
+    points = points_from_depth(frame.depth_m, frame.intrinsics).astype(np.float32)
+    depth, dropped = depth_from_points(points, frame.intrinsics)
+    assert dropped == 0
+    direct, via_cloud = ProjectionOccupancyMap(CONFIG), ProjectionOccupancyMap(CONFIG)
+    integrate(direct, frame, robot, self_filter)
+    via_cloud.integrate_depth(depth, frame.intrinsics, frame.world_from_camera, self_filter=self_filter,
+                              world_from_link=robot.link_poses(HOME))
+    np.testing.assert_array_equal(direct.occupied_indices(), via_cloud.occupied_indices())
+
+
+def test_planning_binary_holds_the_inflated_voxels(robot: RobotModel, self_filter: SelfFilter) -> None:
+    import octomap
+
+    m = ProjectionOccupancyMap(CONFIG)
+    integrate(m, render(TABLE, BOX), robot, self_filter)
+    integrate(m, render(TABLE), robot, self_filter)  # some voxels flip back: the mirror follows
+    tree = octomap.OcTree(RES)
+    assert tree.readBinary(m.planning_binary())
+    inflated = m.inflated_centers_m()
+    assert len(inflated) > m.voxel_count
+    def occupied(point: np.ndarray) -> bool:
+        try:
+            return bool(tree.isNodeOccupied(tree.search(point)))
+        except octomap.NullPointerException:  # no node there: unknown
+            return False
+
+    assert all(occupied(c) for c in inflated)
+    assert not occupied(np.array([-0.5, -0.5, 1.0]))
+
+
+def test_bad_input_is_refused_with_a_clear_error() -> None:
+    m = ProjectionOccupancyMap(CONFIG)
+    k = FRONT.intrinsics
+    with pytest.raises(ValueError, match="depth_m must be"):
+        m.integrate_depth(np.zeros((10, 10), np.float32), k, FRONT.world_from_camera)
+    with pytest.raises(ValueError, match="floats"):
+        m.integrate_depth(np.zeros((k.height, k.width), np.int32), k, FRONT.world_from_camera)
+    with pytest.raises(ValueError, match="world_from_link"):
+        m.integrate_depth(np.ones((k.height, k.width), np.float32), k, FRONT.world_from_camera,
+                          self_filter=SelfFilter({"l": np.eye(4)[:, :3] * 0.1 + 0.01}, 0.0))
+    # NaN and inf depths are "no return", not errors.
+    depth = np.full((k.height, k.width), np.nan, np.float32)
+    depth[::2] = np.inf
+    update = m.integrate_depth(depth, k, FRONT.world_from_camera)
+    assert update.hit_voxels == 0 and update.no_return == update.sampled
