@@ -109,6 +109,9 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     from robonav.services.bench_executor import add_parser as add_executor_parser
 
     add_executor_parser(kinds)
+    from robonav.services.bench_perception import add_parser as add_perception_parser
+
+    add_perception_parser(kinds)
     return parser.parse_args(list(argv))
 
 
@@ -116,6 +119,10 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of `robonav bench`; returns the exit code (2 on bad input)."""
     args = parse_args(sys.argv[1:] if argv is None else argv)
     # Each benchmark kind has its own sub-subcommand and function.
+    if args.kind == "perception":
+        from robonav.services.bench_perception import main as perception_main
+
+        return perception_main(args)
     if args.kind == "executor":
         from robonav.services.bench_executor import main as executor_main
 
