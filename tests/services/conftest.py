@@ -33,7 +33,10 @@ def write_config(directory: Path, name: str, **sections: dict) -> Path:
     """The packaged default with some sections' keys replaced, written as a YAML file."""
     data = yaml.safe_load(default_config_path().read_text(encoding="utf-8"))
     for section, values in sections.items():
-        data.setdefault(section, {}).update(values)
+        if isinstance(data.get(section), list):  # e.g. cameras: the same keys for every item
+            data[section] = [{**item, **values} for item in data[section]]
+        else:
+            data.setdefault(section, {}).update(values)
     path = directory / name
     path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
     load_config(path)  # fail here, not in a service, if the test wrote a bad config
@@ -45,7 +48,11 @@ def stack_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
     # Kinematic following makes the arm track setpoints exactly, so results do not depend on
     # how busy the machine is; the demo uses the dynamic model.
     return write_config(tmp_path_factory.mktemp("stack"), "stack.yaml",
-                        zenoh={"connect": [f"tcp/127.0.0.1:{free_port()}"]}, sim={"follow": "kinematic"})
+                        zenoh={"connect": [f"tcp/127.0.0.1:{free_port()}"]}, sim={"follow": "kinematic"},
+                        # A quarter of the pixels: the sim renders in its physics loop, and a
+                        # 640x480 render on a loaded 2-core machine stalls joint states long
+                        # enough to trip the executor's watchdog.
+                        cameras={"width": 320, "height": 240})
 
 
 @pytest.fixture(scope="session")
