@@ -1,1 +1,1 @@
-"""Hand-eye calibration: collect views, solve, write world_from_camera (not built yet)."""
+"""Hand-eye calibration: collect views (sim or a real rig), solve, report, write the camera extrinsics."""

@@ -112,6 +112,9 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     from robonav.services.bench_perception import add_parser as add_perception_parser
 
     add_perception_parser(kinds)
+    from robonav.services.bench_record import add_parser as add_record_parser
+
+    add_record_parser(kinds)
     return parser.parse_args(list(argv))
 
 
@@ -119,6 +122,10 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of `robonav bench`; returns the exit code (2 on bad input)."""
     args = parse_args(sys.argv[1:] if argv is None else argv)
     # Each benchmark kind has its own sub-subcommand and function.
+    if args.kind == "record":
+        from robonav.services.bench_record import main as record_main
+
+        return record_main(args)
     if args.kind == "perception":
         from robonav.services.bench_perception import main as perception_main
 
