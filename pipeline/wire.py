@@ -53,6 +53,8 @@ class ErrorCode(str, enum.Enum):
     EXECUTOR_BUSY = "EXECUTOR_BUSY"
     """An execute request arrived while a trajectory is streaming or stopping."""
     INTERNAL_ERROR = "INTERNAL_ERROR"
+    PAYLOAD_TOO_LARGE = "PAYLOAD_TOO_LARGE"
+    """The request payload is larger than the service's `limits.max_request_bytes`."""
 
 
 class ProtocolError(ValueError):

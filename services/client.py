@@ -16,15 +16,28 @@ import zenoh
 from robonav.pipeline.messages import (ContactsRequest, ContactsResponse, ErrorReply, ExecuteRequest, ExecuteResponse,
                                        ExecutorStatus, JointState, Occupancy, PlanRequest, PlanResponse, SceneRequest,
                                        SceneResponse, StopRequest, StopResponse, decode_reply)
-from robonav.pipeline.wire import Message
+from robonav.pipeline.wire import Message, ProtocolError
 from robonav.services.common import declare_latched_subscriber
 from robonav.services.keys import Keys
 
 M = TypeVar("M", bound=Message)
 
 
+def _replier(reply: zenoh.Reply) -> str | None:
+    return str(reply.replier_id.zid) if reply.replier_id is not None else None
+
+
 class QueryFailed(RuntimeError):
     """No reply arrived (nobody answered the key, or the timeout passed)."""
+
+
+def _no_reply(key: str, timeout_s: float, started: float) -> QueryFailed:
+    # Zenoh drops a query that access control denies without telling the sender, so silence
+    # is all a refused client sees: say so, rather than leave it to guess.
+    return QueryFailed(
+        f"no reply on {key} after {time.monotonic() - started:.1f} s (timeout {timeout_s} s): no service answered. "
+        "It is not running or not reachable, died while handling the request, or the router's access "
+        "control denied this client (Zenoh drops denied messages without an error)")
 
 
 class RobonavClient:
@@ -33,6 +46,8 @@ class RobonavClient:
     def __init__(self, session: zenoh.Session, cell: str = "arm0") -> None:
         self.session = session
         self.keys = Keys(cell)
+        self.last_replier: str | None = None
+        """Zenoh id of the session that sent the reply the last query or race returned."""
         self._cond = threading.Condition()
         self.joint_state: JointState | None = None
         self.occupancy: Occupancy | None = None
@@ -74,26 +89,65 @@ class RobonavClient:
         return missing
 
     def query(self, key: str, request: Message, expected: type[M], timeout_s: float) -> M | ErrorReply:
+        """Ask the best-matching service on `key` (one of several planner replicas) for one reply."""
+        started = time.monotonic()
         for reply in self.session.get(key, payload=request.to_wire(), timeout=timeout_s):
+            self.last_replier = _replier(reply)
             if reply.ok is not None:
                 return decode_reply(reply.ok.payload.to_bytes(), expected)  # type: ignore[return-value]
             return decode_reply(reply.err.payload.to_bytes(), expected)  # type: ignore[return-value]
-        raise QueryFailed(f"no reply on {key} within {timeout_s} s")
+        raise _no_reply(key, timeout_s, started)
 
-    def plan(self, goal_rad: np.ndarray, *, timeout_s: float = 30.0, **fields) -> PlanResponse | ErrorReply:  # noqa: ANN003
-        return self.query(self.keys.plan, PlanRequest(goal_positions=np.asarray(goal_rad, float), **fields),
-                          PlanResponse, timeout_s)
+    def race(self, key: str, request: Message, expected: type[M], timeout_s: float) -> M | ErrorReply:
+        """Send to every service on `key` at once; return the first success as soon as it arrives.
 
-    def plan_request(self, request: PlanRequest, *, timeout_s: float = 30.0) -> PlanResponse | ErrorReply:
-        """Any plan request: a goal set, a Cartesian goal, workspace bounds, ..."""
-        return self.query(self.keys.plan, request, PlanResponse, timeout_s)
+        Without a success, the first error reply once every service answered or died (a dead
+        one is dropped by the router) or the timeout passed; `QueryFailed` if nothing answered.
+        """
+        started = time.monotonic()
+        first_error: ErrorReply | None = None
+        error_replier: str | None = None
+        # Consolidation NONE hands over each reply as it arrives; the default waits for all of them.
+        replies = self.session.get(key, payload=request.to_wire(), target=zenoh.QueryTarget.ALL,
+                                   consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
+        for reply in replies:
+            sample = reply.ok if reply.ok is not None else reply.err
+            try:
+                message = decode_reply(sample.payload.to_bytes(), expected)
+            except ProtocolError:
+                continue  # a malformed reply is not a valid one; others may still come
+            if not isinstance(message, ErrorReply):
+                self.last_replier = _replier(reply)
+                return message  # type: ignore[return-value]
+            if first_error is None:
+                first_error, error_replier = message, _replier(reply)
+        if first_error is None:
+            raise _no_reply(key, timeout_s, started)
+        self.last_replier = error_replier
+        return first_error
+
+    def plan(self, goal_rad: np.ndarray, *, timeout_s: float = 30.0, race: bool = False,
+             **fields) -> PlanResponse | ErrorReply:  # noqa: ANN003
+        """Plan to a joint goal; `race` asks every planner and takes the first valid plan."""
+        return self.plan_request(PlanRequest(goal_positions=np.asarray(goal_rad, float), **fields),
+                                 timeout_s=timeout_s, race=race)
+
+    def plan_request(self, request: PlanRequest, *, timeout_s: float = 30.0, race: bool = False,
+                     ) -> PlanResponse | ErrorReply:
+        """Any plan request: a goal set, a Cartesian goal, workspace bounds, ...
+
+        One planner (Zenoh's best match) answers, or with `race` all of them and the first
+        valid plan wins. Either way a planner that dies mid-request costs at most `timeout_s`.
+        """
+        ask = self.race if race else self.query
+        return ask(self.keys.plan, request, PlanResponse, timeout_s)
 
     def plan_to_pose(self, position_m: Sequence[float], quat_xyzw: Sequence[float] | None = None, *,
-                     timeout_s: float = 30.0, **fields) -> PlanResponse | ErrorReply:  # noqa: ANN003
+                     timeout_s: float = 30.0, race: bool = False, **fields) -> PlanResponse | ErrorReply:  # noqa: ANN003
         """Plan to a Cartesian goal for `goal_link` (default: the end-effector); no quaternion = any orientation."""
         request = PlanRequest(goal_position_m=np.asarray(position_m, float),
                               goal_quat_xyzw=None if quat_xyzw is None else np.asarray(quat_xyzw, float), **fields)
-        return self.plan_request(request, timeout_s=timeout_s)
+        return self.plan_request(request, timeout_s=timeout_s, race=race)
 
     def scene(self, request: SceneRequest, *, timeout_s: float = 10.0) -> SceneResponse | ErrorReply:
         """Change or list the planner's collision objects (`planner/scene`)."""

@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
+import re
 import signal
+import socket
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, TypeVar
 
 import zenoh
@@ -16,7 +20,7 @@ import zenoh.ext
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.messages import ErrorReply
 from robonav.pipeline.wire import SCHEMA_VERSION, ErrorCode, Message, ProtocolError
-from robonav.services.config import RobonavConfig, ZenohConfig, load_config
+from robonav.services.config import LimitsConfig, RobonavConfig, ZenohConfig, load_config
 from robonav.services.keys import Keys
 
 log = logging.getLogger("robonav")
@@ -24,8 +28,18 @@ M = TypeVar("M", bound=Message)
 
 
 def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
-    """Translate our strict Zenoh section into a `zenoh.Config`."""
-    zcfg = zenoh.Config()
+    """Translate our strict Zenoh section into a `zenoh.Config`, over its `config_file` if any.
+
+    Raises:
+        ConfigError: the Zenoh config file is missing or not a valid Zenoh config.
+    """
+    if cfg.config_file is None:
+        zcfg = zenoh.Config()
+    else:
+        try:
+            zcfg = zenoh.Config.from_file(cfg.config_file)
+        except zenoh.ZError as exc:
+            raise ConfigError(cfg.config_file, "<file>", f"not a usable Zenoh config: {exc}") from exc
     zcfg.insert_json5("mode", json.dumps(cfg.mode))
     zcfg.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
     # Latched topics (zenoh-ext advanced publishers with a cache) need timestamped samples.
@@ -114,10 +128,47 @@ def guarded_subscriber(handler: Callable[[zenoh.Sample], None], name: str) -> Ca
     return wrapped
 
 
+# Every service decodes its requests here, so the size limit lives here too: one per process,
+# set from the config by `run_service` before any queryable is declared.
+_max_request_bytes = LimitsConfig().max_request_bytes
+
+
+def set_max_request_bytes(limit: int) -> None:
+    global _max_request_bytes
+    _max_request_bytes = limit
+
+
 def decode_request(query: zenoh.Query, cls: type[M]) -> M:
-    """The query's request; an empty payload means every key at its default (`{v: 1}`)."""
+    """The query's request; an empty payload means every key at its default (`{v: 1}`).
+
+    Raises:
+        ProtocolError: PAYLOAD_TOO_LARGE above `limits.max_request_bytes` (checked before decoding),
+            or any decoding error.
+    """
+    size = len(query.payload) if query.payload is not None else 0
+    if size > _max_request_bytes:
+        raise ProtocolError(ErrorCode.PAYLOAD_TOO_LARGE,
+                            f"request payload is {size} bytes, more than this service accepts ({_max_request_bytes})",
+                            {"size_bytes": size, "limit_bytes": _max_request_bytes})
     payload = query.payload.to_bytes() if query.payload is not None else b""
     return cls.from_wire(payload) if payload else cls.from_dict({"v": SCHEMA_VERSION})
+
+
+_CONTAINER_ID = re.compile(r"/containers/(?:storage/overlay-containers/)?([0-9a-f]{64})/")
+
+
+def instance_name() -> str:
+    """This process's instance name in liveliness keys: its container's id, else the host name.
+
+    Replicas of one service differ only by container, and with host networking every
+    container has the host's name; the engine bind-mounts each container's own
+    `/etc/hostname` from a path holding its id, which every process inside can read.
+    """
+    try:
+        match = _CONTAINER_ID.search(Path("/proc/self/mountinfo").read_text(encoding="utf-8", errors="replace"))
+    except OSError:
+        match = None
+    return match.group(1)[:12] if match else socket.gethostname()
 
 
 def setup_logging(level: str = "INFO") -> None:
@@ -145,10 +196,16 @@ def parse_args_and_config(prog: str, description: str, argv: list[str] | None,
     parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("--config", help="YAML config file (default: the packaged configs/default.yaml)")
     parser.add_argument("--log-level", default="INFO")
+    parser.add_argument("--zenoh-config", metavar="FILE",
+                        help="Zenoh JSON5 config for this process (TLS, credentials); overrides zenoh.config_file")
     args = parser.parse_args(argv)
     setup_logging(args.log_level)
     try:
-        return args, load_config(args.config)
+        cfg = load_config(args.config)
+        if args.zenoh_config is not None:
+            cfg = dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config))
+        to_zenoh_config(cfg.zenoh)  # a bad Zenoh config file is a config error, not a crash later
+        return args, cfg
     except ConfigError as exc:
         log.error("%s", exc)
         return None
@@ -164,14 +221,19 @@ def run_service(name: str, argv: list[str] | None, build: Callable[[RobonavConfi
         return 2
     _, cfg = loaded
     stop = stop_on_signals(signal.SIGINT, signal.SIGTERM)
+    set_max_request_bytes(cfg.limits.max_request_bytes)
     with open_session(cfg.zenoh) as session:
         node = build(cfg, session)
-        token = session.liveliness().declare_token(Keys(cfg.cell).alive(name))
+        keys = Keys(cfg.cell)
+        # The per-instance token tells replicas of one service apart (a container's health check).
+        tokens = [session.liveliness().declare_token(keys.alive(name)),
+                  session.liveliness().declare_token(keys.alive_instance(name, instance_name()))]
         log.info("%s: serving under robonav/%s", name, cfg.cell)
         try:
             node.spin(stop)
         finally:
-            token.undeclare()
+            for token in tokens:
+                token.undeclare()
             node.close()
     log.info("%s: stopped", name)
     return 0

@@ -27,6 +27,19 @@ class ZenohConfig:
     listen: tuple[str, ...] = ()
     multicast_scouting: bool = False
     """Off by default: a robot cell should not discover peers it was not told about."""
+    config_file: str | None = None
+    """A native Zenoh JSON5 config (TLS, user/password, access control; `configs/security/`) read
+    first; the keys above are applied over it. Relative paths in it are relative to the working
+    directory. `--zenoh-config FILE` on a service's command line overrides it for that process."""
+
+
+@dataclass(frozen=True)
+class LimitsConfig:
+    max_request_bytes: int = 16 * 1024 * 1024
+    """Query payloads larger than this are refused with PAYLOAD_TOO_LARGE [bytes]."""
+
+    def __post_init__(self) -> None:
+        require(self.max_request_bytes > 0, f"limits.max_request_bytes must be > 0, got {self.max_request_bytes}")
 
 
 @dataclass(frozen=True)
@@ -96,6 +109,7 @@ class RobonavConfig:
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     executor: ExecutorConfig = field(default_factory=ExecutorConfig)
     demo: DemoConfig = field(default_factory=DemoConfig)
+    limits: LimitsConfig = field(default_factory=LimitsConfig)
 
     def __post_init__(self) -> None:
         require(bool(self.cell) and "/" not in self.cell and "*" not in self.cell,

@@ -96,6 +96,10 @@ class Keys:
     def alive(self, service: str) -> str:
         return f"{self.root}/alive/{service}"
 
+    def alive_instance(self, service: str, instance: str) -> str:
+        """One replica's token (`alive/<service>/<instance>`); `alive/*` does not match it."""
+        return f"{self.root}/alive/{service}/{instance}"
+
     @property
     def all_alive(self) -> str:
         return f"{self.root}/alive/*"

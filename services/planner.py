@@ -58,7 +58,10 @@ class PlannerNode(Node):
             session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "planner")),
             declare_latched_subscriber(session, keys.occupancy, guarded_subscriber(self.on_occupancy, "planner")),
         ]
-        self._queryable = session.declare_queryable(keys.plan, guarded_queryable(self.handle_plan, "planner"))
+        # complete: any one planner can answer a plan request, so a best-matching query reaches
+        # exactly one of several replicas (a client races them all with target ALL).
+        self._queryable = session.declare_queryable(keys.plan, guarded_queryable(self.handle_plan, "planner"),
+                                                    complete=True)
         self.scene = PlanningScene(self.world, self._lock, current_q=self._start_from_joint_state)
         self._scene_queryable = session.declare_queryable(keys.scene, guarded_queryable(self.scene.handle_scene, "planner"))
 
