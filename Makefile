@@ -7,6 +7,8 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # open3d needs libusb at import time; libgomp for its OpenMP kernels.
 DEB_PACKAGES := libusb-1.0-0 libgomp1
+# The browser test of `robonav view` drives Debian's chromium (Playwright cannot download its own offline).
+test: DEB_PACKAGES += chromium
 
 .PHONY: demo test setup system-deps clean
 

@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("robonav.services.bench", "benchmarks: `robonav bench plan --problems DIR` (MotionBenchMaker), "
                                         "`robonav bench executor`"),
     "plot": ("robonav.services.plot", "plots: `robonav plot trajectory --json PATH_FILE -o out.png`"),
+    "view": ("robonav.services.view", "a live 3D view in the browser; `--snapshot out.png` writes a picture"),
     "router": ("robonav.services.router", "a Zenoh router for the services (TLS, authentication, access control "
                                           "from a Zenoh config): `robonav router [--listen tcp/0.0.0.0:7447]`"),
     "plan": ("robonav.services.plan_cli", "plan (and execute) from the shell: `robonav plan --goal Q... [--race] [--execute]`"),

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import signal
 import tempfile
 import time
 from pathlib import Path
@@ -21,10 +22,11 @@ from robonav.pipeline.config import ConfigError
 from robonav.pipeline.messages import ErrorReply, ExecuteResponse, PlanResponse
 from robonav.pipeline.robot import RobotModel
 from robonav.services.client import QueryFailed, RobonavClient
-from robonav.services.common import open_session, setup_logging
+from robonav.services.common import open_session, setup_logging, stop_on_signals
 from robonav.services.config import RobonavConfig, default_config_path, load_config
 from robonav.services.keys import SERVICES
 from robonav.services.up import Stack
+from robonav.services.view_snapshot import snapshot_view
 
 log = logging.getLogger("robonav.demo")
 
@@ -83,10 +85,13 @@ def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, i
     return record
 
 
-def run_demo(cfg: RobonavConfig, config_path: Path, seed: int) -> dict[str, Any]:
+def run_demo(cfg: RobonavConfig, config_path: Path, seed: int, *, view_port: int | None = None,
+             snapshot: Path | None = None) -> dict[str, Any]:
+    """`view_port`: also run `robonav view` there and keep everything up after the goals until
+    Ctrl-C; `snapshot`: write a PNG of the final scene (see `robonav view --snapshot`)."""
     started = time.monotonic()
     truth = true_scene(cfg)
-    stack = Stack(cfg, str(config_path))
+    stack = Stack(cfg, str(config_path), view_port=view_port)
     summary: dict[str, Any] = {"seed": seed, "goals": [], "goal_count": len(cfg.demo.goals_rad)}
     try:
         with open_session(cfg.zenoh) as session:
@@ -113,6 +118,11 @@ def run_demo(cfg: RobonavConfig, config_path: Path, seed: int) -> dict[str, Any]
                 raise RuntimeError(f"contacts query failed: {contacts.code}: {contacts.message}")
             summary.update(contacts=contacts.contact_count, contact_pairs=list(contacts.pairs),
                            min_obstacle_distance_m=None if contacts.min_distance_m is None else round(contacts.min_distance_m, 4))
+            if snapshot is not None:
+                summary.update(snapshot_view(cfg, snapshot))
+            if view_port is not None:
+                log.warning("demo done; the view stays on http://127.0.0.1:%d until Ctrl-C", view_port)
+                stop_on_signals(signal.SIGINT, signal.SIGTERM).wait()
             client.close()
     finally:
         summary["service_exit_codes"] = stack.close()
@@ -126,6 +136,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", help="YAML config file (default: the packaged configs/default.yaml)")
     parser.add_argument("--seed", type=int, default=0, help="seeds the planner's sampler and shortcutting")
     parser.add_argument("--json", dest="json_path", help="also write the summary to this file")
+    parser.add_argument("--view", action="store_true", help="also serve the live 3D view; stay up until Ctrl-C")
+    parser.add_argument("--view-port", type=int, default=8080, help="port of the view (default %(default)s)")
+    parser.add_argument("--snapshot", metavar="OUT.png", help="write a picture of the final scene (needs chromium)")
     parser.add_argument("--log-level", default="WARNING")
     args = parser.parse_args(argv)
     setup_logging(args.log_level)
@@ -141,7 +154,8 @@ def main(argv: list[str] | None = None) -> int:
             log.error("%s: demo.goals_rad is empty", source)
             return 2
         try:
-            summary = run_demo(cfg, config_path, args.seed)
+            summary = run_demo(cfg, config_path, args.seed, view_port=args.view_port if args.view else None,
+                               snapshot=Path(args.snapshot) if args.snapshot else None)
         except RuntimeError as exc:
             log.error("demo failed: %s", exc)
             return 1
@@ -149,5 +163,5 @@ def main(argv: list[str] | None = None) -> int:
     print(text)
     if args.json_path:
         Path(args.json_path).write_text(text + "\n", encoding="utf-8")
-    ok = summary["reached"] == summary["goal_count"] and summary["contacts"] == 0
+    ok = summary["reached"] == summary["goal_count"] and summary["contacts"] == 0 and "snapshot_error" not in summary
     return 0 if ok else 1

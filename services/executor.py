@@ -15,13 +15,14 @@ import numpy as np
 import zenoh
 
 from robonav.pipeline.joint_order import reorder_to_robot
-from robonav.pipeline.messages import (ExecuteRequest, ExecuteResponse, ExecutorStatus, JointState, Setpoint,
-                                       StopRequest, StopResponse)
+from robonav.pipeline.messages import (ExecuteRequest, ExecuteResponse, ExecutorPath, ExecutorStatus, JointState,
+                                       Setpoint, StopRequest, StopResponse)
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.trajectory.execution import ExecutionStateMachine, Limits, WatchdogConfig
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.pipeline.wire import ErrorCode, ProtocolError
-from robonav.services.common import Node, guarded_queryable, guarded_subscriber, decode_request, reply_ok, run_service
+from robonav.services.common import (Node, declare_latched_publisher, guarded_queryable, guarded_subscriber,
+                                     decode_request, reply_ok, run_service)
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
 
@@ -53,6 +54,8 @@ class ExecutorNode(Node):
         self._setpoint_pub = session.declare_publisher(keys.setpoint, congestion_control=zenoh.CongestionControl.BLOCK,
                                                        priority=zenoh.Priority.REAL_TIME, express=True)
         self._status_pub = session.declare_publisher(keys.status, congestion_control=zenoh.CongestionControl.BLOCK)
+        # Latched, so a viewer that starts late still sees the last path (plan replies go only to the asker).
+        self._path_pub = declare_latched_publisher(session, keys.executor_path)
         self._sub = session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "executor"))
         self._queryables = [
             session.declare_queryable(keys.execute, guarded_queryable(self.handle_execute, "executor")),
@@ -101,6 +104,8 @@ class ExecutorNode(Node):
             duration_s = self.machine.status(time.monotonic()).duration_s
         log.info("executing %s: %d waypoints, %.2f s%s", trajectory_id, len(path), duration_s,
                  " (preempted the running trajectory)" if preempted else "")
+        self._path_pub.put(ExecutorPath(stamp=time.time(), trajectory_id=trajectory_id,
+                                        joint_names=self.robot.joint_names, path=path, duration_s=duration_s).to_wire())
         reply_ok(query, ExecuteResponse(trajectory_id=trajectory_id, duration_s=duration_s, waypoint_count=len(path)))
 
     def _check_start(self, start: np.ndarray) -> None:
@@ -175,6 +180,7 @@ class ExecutorNode(Node):
         self._sub.undeclare()
         self._setpoint_pub.undeclare()
         self._status_pub.undeclare()
+        self._path_pub.undeclare()
 
 
 def main(argv: list[str] | None = None) -> int:

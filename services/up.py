@@ -6,6 +6,7 @@ rendering, ray casting or planning.
 
 from __future__ import annotations
 
+import argparse
 import logging
 import signal
 import subprocess
@@ -30,7 +31,7 @@ class Stack:
     """The router session and the service processes; `close` stops them by their PIDs."""
 
     def __init__(self, cfg: RobonavConfig, config_path: str | None, *, services: Sequence[str] = SERVICES,
-                 log_level: str = "INFO") -> None:
+                 log_level: str = "INFO", view_port: int | None = None) -> None:
         self.cfg = cfg
         router_cfg = ZenohConfig(mode="router", listen=cfg.zenoh.connect[:1], multicast_scouting=False)
         self.router = zenoh.open(to_zenoh_config(router_cfg))
@@ -41,6 +42,12 @@ class Stack:
                 cmd += ["--config", str(Path(config_path).resolve())]
             self.processes[name] = subprocess.Popen(cmd)
             log.info("started %s (pid %d)", name, self.processes[name].pid)
+        if view_port is not None:  # `robonav view`, in its own process like a service
+            cmd = [sys.executable, "-m", "robonav.services.cli", "view", "--port", str(view_port), "--log-level", log_level]
+            if config_path is not None:
+                cmd += ["--config", str(Path(config_path).resolve())]
+            self.processes["view"] = subprocess.Popen(cmd)
+            log.info("started view on port %d (pid %d)", view_port, self.processes["view"].pid)
 
     def dead(self) -> dict[str, int]:
         """Services that exited, with their exit codes."""
@@ -65,12 +72,17 @@ class Stack:
 
 
 def main(argv: list[str] | None = None) -> int:
-    loaded = parse_args_and_config("robonav up", "Run a Zenoh router and every service until Ctrl-C.", argv)
+    view_parser = argparse.ArgumentParser(add_help=False)
+    view_parser.add_argument("--view", action="store_true")
+    view_parser.add_argument("--view-port", type=int, default=8080)
+    view_args, argv = view_parser.parse_known_args(argv)
+    loaded = parse_args_and_config("robonav up", "Run a Zenoh router and every service until Ctrl-C "
+                                   "(--view: also `robonav view` on --view-port, default 8080).", argv)
     if loaded is None:
         return 2
     args, cfg = loaded
     stop = stop_on_signals(signal.SIGINT, signal.SIGTERM)
-    stack = Stack(cfg, args.config, log_level=args.log_level)
+    stack = Stack(cfg, args.config, log_level=args.log_level, view_port=view_args.view_port if view_args.view else None)
     failed: dict[str, int] = {}
     watcher = threading.Thread(target=lambda: _watch(stack, stop, failed), daemon=True)
     watcher.start()
