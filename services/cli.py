@@ -21,14 +21,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("robonav.services.bench", "benchmarks: `robonav bench plan --problems DIR` (MotionBenchMaker), "
                                         "`robonav bench executor`"),
     "plot": ("robonav.services.plot", "plots: `robonav plot trajectory --json PATH_FILE -o out.png`"),
-    "view": ("robonav.services.view", "a live 3D view in the browser; `--snapshot out.png` writes a picture"),
     "router": ("robonav.services.router", "a Zenoh router for the services (TLS, authentication, access control "
                                           "from a Zenoh config): `robonav router [--listen tcp/0.0.0.0:7447]`"),
     "plan": ("robonav.services.plan_cli", "plan (and execute) from the shell: `robonav plan --goal Q... [--race] [--execute]`"),
+    "view": ("robonav.services.view", "a live 3D view in the browser; `--snapshot out.png` writes a picture"),
     "record": ("robonav.services.record", "record Zenoh traffic into an MCAP file: `robonav record -o run.mcap [KEYEXPR ...]`"),
     "replay": ("robonav.services.replay", "publish a recording back with its timing: `robonav replay run.mcap [--rate R] [--loop]`"),
     "calibrate": ("robonav.calibration.cli", "hand-eye calibration: `robonav calibrate collect --out DIR`, "
                                              "`robonav calibrate solve DIR`"),
+    "campaign": ("robonav.services.campaign", "safety campaign on random scenes: `robonav campaign --scenes N --seed S "
+                                              "[--json FILE]`"),
 }
 
 

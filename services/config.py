@@ -117,6 +117,8 @@ class RobonavConfig:
         require(len(self.cameras) > 0, "cameras must list at least one camera")
         ids = [c.camera_id for c in self.cameras]
         require(len(set(ids)) == len(ids), f"cameras have duplicate camera_id values: {ids}")
+        unknown = sorted(set(self.sim.camera_noise) - set(ids))
+        require(not unknown, f"sim.camera_noise names cameras that are not in cameras: {unknown} (cameras: {ids})")
         n = len(self.robot.joint_names)
         for i, goal in enumerate(self.demo.goals_rad):
             require(len(goal) == n, f"demo.goals_rad[{i}] has {len(goal)} values, expected {n}")

@@ -1,13 +1,16 @@
-"""Simulation settings: physics rate, how the arm follows setpoints, and the static obstacles."""
+"""Simulation settings: physics rate, how the arm follows setpoints, obstacles, camera noise, scripts."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 from robonav.pipeline.config import require
 from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.sim.motion import ObjectMotion
+from robonav.pipeline.sim.noise import DepthNoiseConfig
+from robonav.pipeline.sim.scenes import ClutterConfig
 
 
 @dataclass(frozen=True)
@@ -38,6 +41,16 @@ class SimConfig:
     """Static obstacles (mass 0) placed in the world."""
     gravity: bool = True
     """Apply -9.81 m/s^2 along world z (only matters in "dynamic" mode)."""
+    noise: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
+    """Depth noise of every simulated camera (see `DepthNoiseConfig`)."""
+    camera_noise: dict[str, DepthNoiseConfig] = field(default_factory=dict)
+    """Camera id -> its own noise model, replacing `noise` for that camera."""
+    labels: bool = True
+    """Publish per-point (and per-pixel) object labels with every frame."""
+    motions: tuple[ObjectMotion, ...] = ()
+    """Scripted obstacle motions, armed when the sim starts (see `ObjectMotion`)."""
+    clutter: ClutterConfig = field(default_factory=ClutterConfig)
+    """Procedural scenes (`robonav campaign`): the table and what is put on it."""
 
     def __post_init__(self) -> None:
         require(math.isfinite(self.physics_rate_hz) and self.physics_rate_hz > 0,

@@ -1,4 +1,4 @@
-"""A headless pybullet world: the arm, static obstacles and a depth camera.
+"""A headless pybullet world: the arm, obstacles (static bodies, moved by teleporting) and depth cameras.
 
 Each `SimWorld` owns its own DIRECT physics client and passes `physicsClientId` to every
 call, so several worlds coexist in one process. The world frame is the robot base frame.
@@ -6,7 +6,9 @@ call, so several worlds coexist in one process. The world frame is the robot bas
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from types import TracebackType
 
@@ -15,11 +17,13 @@ import numpy.typing as npt
 import pybullet as p
 import pybullet_data
 
-from robonav.pipeline.camera import CameraConfig, CameraIntrinsics
-from robonav.pipeline.perception.depth import depth_from_opengl_buffer
+from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.robot_config import RobotConfig
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.config import SimConfig
+from robonav.pipeline.sim.rendering import DepthFrame, opengl_projection_matrix, render_depth
+
+__all__ = ["Contact", "DepthFrame", "SimWorld", "opengl_projection_matrix"]
 
 _PYBULLET_DATA_PREFIX = "pybullet_data:"
 _GRAVITY_M_S2 = 9.81
@@ -39,35 +43,20 @@ _MIN_MOTOR_FORCE = 50.0
 _MAX_EXTRAPOLATION_S = 0.05
 _OBSTACLE_RGBA = ((0.85, 0.33, 0.10, 1.0), (0.00, 0.45, 0.74, 1.0), (0.47, 0.67, 0.19, 1.0),
                   (0.93, 0.69, 0.13, 1.0), (0.49, 0.18, 0.56, 1.0), (0.30, 0.75, 0.93, 1.0))
-# OpenGL cameras look along -z with y up; the optical frame looks along +z with y down.
-_GL_FROM_OPTICAL = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-@dataclass(frozen=True)
-class DepthFrame:
-    """One rendered depth image with its labels and camera model."""
-
-    depth_m: npt.NDArray[np.float32]
-    """(H, W) depth along the optical axis [m]; +inf where nothing was hit."""
-    segmentation: npt.NDArray[np.int32]
-    """(H, W) pybullet body unique id per pixel; -1 for background (see `SimWorld.body_labels`)."""
-    intrinsics: CameraIntrinsics
-    world_from_camera: npt.NDArray[np.float64]
-    """(4, 4) pose of the optical frame in the world frame."""
 
 
 @dataclass(frozen=True)
 class Contact:
-    """The deepest contact between one robot link and one obstacle."""
+    """The deepest contact (or the closest approach) between one robot link and one obstacle."""
 
     link: str
     object: str
     distance_m: float
-    """Signed distance [m]; <= 0 (negative is penetration)."""
+    """Signed distance [m]; negative is penetration (<= 0 for contacts)."""
 
 
 class SimWorld:
-    """The simulated arm among static obstacles, stepped explicitly by its owner.
+    """The simulated arm among obstacles, stepped explicitly by its owner; obstacles change at run time.
 
     The world never sleeps: pacing steps to wall time is the caller's job. How joints follow
     `set_joint_target` depends on `SimConfig.follow` (see `SimConfig`). Self-collision is off.
@@ -99,10 +88,14 @@ class SimWorld:
         p.setTimeStep(self._dt_s, physicsClientId=cid)
         p.setGravity(0.0, 0.0, -_GRAVITY_M_S2 if self._sim.gravity else 0.0, physicsClientId=cid)
         self._load_robot()
-        self._obstacles: dict[int, str] = {
-            _create_obstacle(obj, _OBSTACLE_RGBA[i % len(_OBSTACLE_RGBA)], cid): obj.name
-            for i, obj in enumerate(self._sim.objects)
-        }
+        self._obstacles: dict[int, str] = {}
+        """Body unique id -> object name."""
+        self._objects: dict[str, SceneObject] = {}
+        """Object name -> the object at its current pose."""
+        self._bodies: dict[str, int] = {}
+        self._colours_used = 0
+        for obj in self._sim.objects:
+            self.add_object(obj)
         p.performCollisionDetection(physicsClientId=cid)
 
     def _load_robot(self) -> None:
@@ -191,6 +184,95 @@ class SimWorld:
         self._target_q, self._target_qd = q, qd
         self._target_step = self._steps
 
+    def set_joint_positions(self, q_rad: npt.ArrayLike) -> None:
+        """Teleport the arm to `q_rad` at rest, without stepping (for worlds that only mirror a pose).
+
+        Args:
+            q_rad: (n,) joint positions in `robot.joint_names` order [rad or m].
+
+        Raises:
+            ValueError: the vector has the wrong shape or is not finite.
+        """
+        q = _finite_vector(q_rad, len(self._joint_ids), "joint positions q_rad")
+        p.resetJointStatesMultiDof(self._robot, self._joint_ids, [[v] for v in q],
+                                   targetVelocities=[[0.0]] * len(q), physicsClientId=self._live_client())
+        self._target_q, self._target_qd = q, np.zeros_like(q)
+        self._target_step = self._steps
+
+    @property
+    def objects(self) -> tuple[SceneObject, ...]:
+        """Every obstacle at its current (true) pose, in the order added."""
+        return tuple(self._objects.values())
+
+    def add_object(self, obj: SceneObject) -> None:
+        """Add a static obstacle; an obstacle of the same name is replaced.
+
+        Raises:
+            ValueError: the name is 'robot' (reserved for the arm's label).
+        """
+        if obj.name == "robot":
+            raise ValueError("an obstacle must not be named 'robot' (reserved label)")
+        cid = self._live_client()
+        if obj.name in self._objects:
+            self.remove_object(obj.name)
+        body = _create_obstacle(obj, _OBSTACLE_RGBA[self._colours_used % len(_OBSTACLE_RGBA)], cid)
+        self._colours_used += 1
+        self._obstacles[body] = obj.name
+        self._bodies[obj.name] = body
+        self._objects[obj.name] = obj
+
+    def remove_object(self, name: str) -> None:
+        """Remove the obstacle `name`.
+
+        Raises:
+            ValueError: no obstacle has that name.
+        """
+        body = self._body(name)
+        p.removeBody(body, physicsClientId=self._live_client())
+        del self._obstacles[body], self._bodies[name], self._objects[name]
+
+    def set_objects(self, objects: Sequence[SceneObject]) -> None:
+        """Replace every obstacle with `objects` (a new scene).
+
+        Raises:
+            ValueError: two objects share a name, or one is named 'robot'.
+        """
+        names = [obj.name for obj in objects]
+        if len(set(names)) != len(names) or "robot" in names:
+            raise ValueError(f"scene object names must be unique and not 'robot', got {names}")
+        for name in list(self._objects):
+            self.remove_object(name)
+        for obj in objects:
+            self.add_object(obj)
+
+    def set_object_pose(self, name: str, position_m: npt.ArrayLike, quat_xyzw: npt.ArrayLike | None = None) -> None:
+        """Teleport obstacle `name` (it stays static: moving obstacles are kinematic).
+
+        Args:
+            name: The obstacle.
+            position_m: (3,) new origin in the world frame [m].
+            quat_xyzw: (4,) new orientation, any non-zero norm; None keeps the current one.
+
+        Raises:
+            ValueError: unknown name, or a non-finite or zero-norm pose.
+        """
+        body = self._body(name)
+        position = _finite_vector(position_m, 3, f"position_m of '{name}'")
+        quat = np.asarray(self._objects[name].quat_xyzw, dtype=np.float64) if quat_xyzw is None \
+            else _finite_vector(quat_xyzw, 4, f"quat_xyzw of '{name}'")
+        norm = float(np.linalg.norm(quat))
+        if norm < 1e-9:
+            raise ValueError(f"quat_xyzw of '{name}' has zero norm")
+        quat = quat / norm
+        p.resetBasePositionAndOrientation(body, position.tolist(), quat.tolist(), physicsClientId=self._live_client())
+        self._objects[name] = dataclasses.replace(self._objects[name], position_m=tuple(position.tolist()),
+                                                  quat_xyzw=tuple(quat.tolist()))
+
+    def _body(self, name: str) -> int:
+        if name not in self._bodies:
+            raise ValueError(f"no obstacle named {name!r} (obstacles: {sorted(self._bodies)})")
+        return self._bodies[name]
+
     def step(self) -> None:
         """Advance the world by one physics time step of 1/physics_rate_hz."""
         cid = self._live_client()
@@ -215,21 +297,7 @@ class SimWorld:
             The depth image (linear metres along the optical axis), per-pixel body ids, the
             intrinsics and the camera pose it was rendered with.
         """
-        cid = self._live_client()
-        cam = self._camera if camera is None else camera
-        intrinsics = cam.intrinsics
-        world_from_camera = cam.world_from_camera
-        # pybullet takes OpenGL matrices flattened column-major.
-        view = (_GL_FROM_OPTICAL @ np.linalg.inv(world_from_camera)).flatten(order="F")
-        proj = opengl_projection_matrix(intrinsics, cam.near_m, cam.far_m).flatten(order="F")
-        _, _, _, z_buffer, seg = p.getCameraImage(
-            cam.width, cam.height, viewMatrix=view.tolist(), projectionMatrix=proj.tolist(),
-            shadow=0, renderer=p.ER_TINY_RENDERER, physicsClientId=cid)
-        z_buffer = np.asarray(z_buffer, dtype=np.float32).reshape(cam.height, cam.width)
-        segmentation = np.asarray(seg, dtype=np.int32).reshape(cam.height, cam.width)
-        depth_m = depth_from_opengl_buffer(z_buffer, cam.near_m, cam.far_m)
-        depth_m[segmentation < 0] = np.inf
-        return DepthFrame(depth_m, segmentation, intrinsics, world_from_camera)
+        return render_depth(self._live_client(), self._camera if camera is None else camera)
 
     def body_labels(self) -> dict[int, str]:
         """Body unique id -> obstacle name, or 'robot' for the arm."""
@@ -243,13 +311,19 @@ class SimWorld:
             sorted by object then link name.
         """
         cid = self._live_client()
-        deepest: dict[tuple[str, str], float] = {}
-        for body, name in self._obstacles.items():
+        candidates: set[tuple[int, int]] = set()
+        for body in self._obstacles:
             for point in p.getContactPoints(bodyA=self._robot, bodyB=body, physicsClientId=cid):
-                distance_m = float(point[8])
-                if distance_m <= 0.0:
-                    key = (name, self._link_names[point[3]])
-                    deepest[key] = min(distance_m, deepest.get(key, math.inf))
+                if float(point[8]) <= 0.0:
+                    candidates.add((body, point[3]))
+        # Contact manifolds persist across teleports (kinematic following, moved obstacles) and
+        # can hold stale points for a step; a fresh closest-point query confirms each pair.
+        deepest: dict[tuple[str, str], float] = {}
+        for body, link in candidates:
+            fresh = p.getClosestPoints(self._robot, body, 0.0, linkIndexA=link, physicsClientId=cid)
+            distances = [float(point[8]) for point in fresh if float(point[8]) <= 0.0]
+            if distances:
+                deepest[(self._obstacles[body], self._link_names[link])] = min(distances)
         return [Contact(link=link, object=obj, distance_m=d) for (obj, link), d in sorted(deepest.items())]
 
     def min_robot_obstacle_distance_m(self, max_distance_m: float = 0.5) -> float:
@@ -264,13 +338,23 @@ class SimWorld:
         Raises:
             ValueError: `max_distance_m` is negative or not finite.
         """
+        closest = self.closest_robot_obstacle(max_distance_m)
+        return math.inf if closest is None else closest.distance_m
+
+    def closest_robot_obstacle(self, max_distance_m: float = 0.5) -> Contact | None:
+        """The closest (robot link, obstacle) pair and its signed distance, if within `max_distance_m`.
+
+        Raises:
+            ValueError: `max_distance_m` is negative or not finite.
+        """
         if not (math.isfinite(max_distance_m) and max_distance_m >= 0.0):
             raise ValueError(f"max_distance_m must be finite and >= 0, got {max_distance_m}")
         cid = self._live_client()
-        best = math.inf
-        for body in self._obstacles:
+        best: Contact | None = None
+        for body, name in self._obstacles.items():
             for point in p.getClosestPoints(self._robot, body, max_distance_m, physicsClientId=cid):
-                best = min(best, float(point[8]))
+                if best is None or float(point[8]) < best.distance_m:
+                    best = Contact(link=self._link_names[point[3]], object=name, distance_m=float(point[8]))
         return best
 
     def close(self) -> None:
@@ -305,21 +389,6 @@ class SimWorld:
             targetPositions=q.tolist(), targetVelocities=qd.tolist(),
             forces=self._joint_forces, positionGains=[_POSITION_GAIN] * n, velocityGains=[_VELOCITY_GAIN] * n,
             physicsClientId=self._client)
-
-
-def opengl_projection_matrix(intrinsics: CameraIntrinsics, near_m: float, far_m: float) -> npt.NDArray[np.float64]:
-    """(4, 4) OpenGL projection matrix that reproduces pinhole `intrinsics`.
-
-    Pixel centres sit at integer (u, v) with v growing downwards, as in `CameraIntrinsics`;
-    for centred intrinsics this equals `computeProjectionMatrixFOV(vertical fov, w/h, near, far)`.
-    """
-    w, h = intrinsics.width, intrinsics.height
-    return np.array([
-        [2.0 * intrinsics.fx / w, 0.0, 1.0 - 2.0 * (intrinsics.cx + 0.5) / w, 0.0],
-        [0.0, 2.0 * intrinsics.fy / h, 2.0 * (intrinsics.cy + 0.5) / h - 1.0, 0.0],
-        [0.0, 0.0, -(far_m + near_m) / (far_m - near_m), -2.0 * far_m * near_m / (far_m - near_m)],
-        [0.0, 0.0, -1.0, 0.0],
-    ])
 
 
 def _create_obstacle(obj: SceneObject, rgba: tuple[float, float, float, float], cid: int) -> int:

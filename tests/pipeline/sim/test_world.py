@@ -337,3 +337,49 @@ def test_sim_config_validation_and_loading() -> None:
         SimConfig(objects=(BOX, BOX))
     with pytest.raises(ConfigError, match="sim.follow"):
         from_mapping(SimConfig, {"follow": "teleport"}, key="sim")
+
+
+# --- objects at run time ----------------------------------------------------------------------
+
+def test_objects_are_added_moved_removed_and_replaced_at_run_time() -> None:
+    with make_world(BOX) as world:
+        world.add_object(WALL)
+        assert [o.name for o in world.objects] == ["box", "wall"]
+        assert sorted(world.body_labels().values()) == ["box", "robot", "wall"]
+        world.set_object_pose("box", (0.9, -0.3, 0.5), (0.0, 0.0, 0.0, 2.0))
+        moved = next(o for o in world.objects if o.name == "box")
+        assert moved.position_m == pytest.approx((0.9, -0.3, 0.5)) and moved.quat_xyzw == pytest.approx((0, 0, 0, 1))
+        body = next(b for b, n in world.body_labels().items() if n == "box")
+        position, _ = p.getBasePositionAndOrientation(body, physicsClientId=world._client)
+        assert position == pytest.approx((0.9, -0.3, 0.5))
+        world.remove_object("wall")
+        assert sorted(world.body_labels().values()) == ["box", "robot"]
+        world.set_objects([WALL])
+        assert [o.name for o in world.objects] == ["wall"]
+        with pytest.raises(ValueError, match="no obstacle named 'box'"):
+            world.remove_object("box")
+        with pytest.raises(ValueError, match="robot"):
+            world.add_object(dataclasses.replace(WALL, name="robot"))
+        with pytest.raises(ValueError, match="unique"):
+            world.set_objects([WALL, WALL])
+        with pytest.raises(ValueError, match="zero norm"):
+            world.set_object_pose("wall", (0, 0, 0), (0, 0, 0, 0))
+
+
+@pytest.mark.parametrize("follow", ["kinematic", "dynamic"])
+def test_an_obstacle_moved_onto_the_arm_is_a_contact(follow: str) -> None:
+    with make_world(WALL, follow=follow) as world:
+        world.step()
+        assert world.robot_obstacle_contacts() == []
+        world.set_object_pose("wall", (0.3, 0.0, 0.5))  # through the upper arm
+        world.step()
+        assert {c.object for c in world.robot_obstacle_contacts()} == {"wall"}
+
+
+def test_set_joint_positions_teleports_without_stepping() -> None:
+    with make_world() as world:
+        world.set_joint_positions(HOME + STEP_OFFSET)
+        np.testing.assert_allclose(world.joint_state()[0], HOME + STEP_OFFSET, atol=1e-12)
+        assert world.sim_time_s == 0.0
+        with pytest.raises(ValueError, match="shape"):
+            world.set_joint_positions(HOME[:3])

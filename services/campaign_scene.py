@@ -1,0 +1,340 @@
+"""One campaign scene on a running stack: swap the scene in, reach goals, judge what happened.
+
+The stack keeps running between scenes: the sim swaps its obstacles (`sim/objects set`),
+perception forgets its map (`perception/clear`), and the arm goes home first so the new scene
+never appears around it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from robonav.pipeline.collision import CollisionWorld
+from robonav.pipeline.messages import (ErrorReply, ExecuteResponse, ObjectMotionSpec,
+                                       PerceptionClearRequest, PerceptionClearResponse, PlanResponse, SimObjectsRequest,
+                                       SimObjectsResponse)
+from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
+from robonav.pipeline.planning.result import PlanStatus
+from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.sim.goals import intruder_for_trajectory, perceivable_objects, sample_goal
+from robonav.pipeline.sim.path_guard import PathGuard
+from robonav.pipeline.sim.scenes import Scene
+from robonav.pipeline.trajectory.timing import time_parameterize
+from robonav.services.client import QueryFailed, RobonavClient
+from robonav.services.config import RobonavConfig
+from robonav.services.sim_objects import object_spec
+
+log = logging.getLogger("robonav.campaign")
+
+MAX_ATTEMPTS = 4
+"""Plans per goal: the first and up to three replans."""
+RETRYABLE = {"NO_SOLUTION", "START_IN_COLLISION", "GOAL_IN_COLLISION", "OCCUPANCY_STALE", "OCCUPANCY_MISSING",
+             "NO_JOINT_STATE", "INVALID_REQUEST"}
+"""Plan or execute errors worth another try on a fresher map or state (INVALID_REQUEST: a path
+that no longer starts at the measured state)."""
+HOME_TOLERANCE_RAD = 0.05
+MAP_SETTLE_FRAMES = 3
+"""Frames of the slowest camera integrated after a scene swap before planning in it."""
+INTRUDER_SLIDE_S = 0.5
+INTRUDER_LEAD_S = 1.2
+"""The box rests on the path at least this long before any link would come within 10 cm of it:
+time for a frame, a map, the guard's check and a stop (a box hitting an arm that cannot get
+away in time tests nothing)."""
+
+
+@dataclass
+class GoalRecord:
+    scene: int
+    index: int
+    goal_rad: list[float]
+    feasible: bool
+    detour: bool
+    moving: bool = False
+    intruder: bool = False
+    """A box was slid onto this goal's path."""
+    intruder_lead_s: float | None = None
+    """Planned time from the box resting until a link would first come within 10 cm of it [s]."""
+    guard_delay_s: float | None = None
+    """From the intruder resting to the guard's stop request [s]."""
+    guard_map_age_s: float | None = None
+    """Age of the map (newest frame in it) when the guard stopped the arm [s]."""
+    guard_check_ms: list[float] = field(default_factory=list)
+    reached: bool = False
+    result: str = ""
+    replans: int = 0
+    guard_stops: int = 0
+    planning_ms: list[float] = field(default_factory=list)
+    plan_min_clearance_m: float | None = None
+    """Smallest clearance the planner reported (robot to its map) [m]."""
+    plan_true_clearance_m: float | None = None
+    """Smallest distance from the unpadded robot along the planned paths to the TRUE obstacles [m]."""
+    errors: list[str] = field(default_factory=list)
+    final_error_rad: float | None = None
+
+
+class SceneRunner:
+    """Runs scenes one after another on one stack."""
+
+    def __init__(self, cfg: RobonavConfig, client: RobonavClient, *, goals_per_scene: int, guard: bool,
+                 velocity_scaling: float | None, seed: int) -> None:
+        self.cfg = cfg
+        self.client = client
+        self.robot = RobotModel.from_config(cfg.robot)
+        self.goals_per_scene = goals_per_scene
+        self.guard = PathGuard(self.robot, padding_m=cfg.robot.padding_m, inflation_m=cfg.perception.inflation_m,
+                               edge_resolution_rad=cfg.planner.edge_resolution_rad) if guard else None
+        self.scaling = velocity_scaling
+        self.seed = seed
+        self.home = np.asarray(cfg.robot.home_position_rad, dtype=np.float64)
+        # What the map can allow: padding, inflation and a voxel of quantization on top of the truth.
+        self.margin_m = cfg.robot.padding_m + cfg.perception.inflation_m + cfg.perception.resolution_m
+        self.view = CollisionWorld(self.robot, padding_m=self.margin_m)
+        self.truth = CollisionWorld(self.robot, padding_m=0.0)
+        self.reference = MotionPlanner(self.robot, self.view, cfg.planner)
+        self.frame_period_s = max(1.0 / c.rate_hz for c in cfg.cameras)
+        self.link = cfg.robot.end_effector_link
+        self.plan_seq = 0
+        self.resets = 0
+        """Times the arm was jogged home without the planner (in an emptied world)."""
+        self._intruder_rest_at = 0.0
+        if self.guard is not None:  # compile its kinematics now, not while the arm moves
+            self.guard.start(None)
+            self.guard.update_map(np.zeros((1, 3)), 0.02)
+            self.guard.remaining_blocked(np.array([self.home, self.home]), self.home)
+
+    # --- queries --------------------------------------------------------------------------
+
+    def _objects(self, request: SimObjectsRequest) -> SimObjectsResponse:
+        reply = self.client.query(self.client.keys.sim_objects, request, SimObjectsResponse, 10.0)
+        if isinstance(reply, ErrorReply):
+            raise RuntimeError(f"sim/objects {request.operation}: {reply.code}: {reply.message}")
+        return reply
+
+    def _clear_map(self) -> None:
+        try:
+            reply = self.client.query(self.client.keys.perception_clear, PerceptionClearRequest(),
+                                      PerceptionClearResponse, 5.0)
+        except QueryFailed:
+            reply = None
+        if reply is None or isinstance(reply, ErrorReply):
+            log.warning("perception/clear failed (%s); old voxels fade as the camera sees through them", reply)
+
+    def _wait_fresh_map(self, after: float, frames: int = 1) -> bool:
+        """Wait for a map built from frames newer than `after` (+ frames - 1 frame periods)."""
+        threshold = after + (frames - 1) * self.frame_period_s
+        return self.client.wait_for(lambda: self.client.occupancy is not None and self.client.occupancy.stamp > threshold,
+                                    10.0 + frames * self.frame_period_s)
+
+    def _q(self) -> np.ndarray:
+        assert self.client.joint_state is not None
+        return self.client.joint_state.position.copy()
+
+    # --- scene ----------------------------------------------------------------------------
+
+    def swap_in(self, scene: Scene) -> None:
+        """Home the arm (or take it to the scene's start through an emptied world), replace the
+        sim's obstacles, forget the map, wait for a fresh one."""
+        self.go_home()
+        if scene.start_rad is not None:
+            self._objects(SimObjectsRequest(operation="set"))
+            emptied = time.time()
+            self._clear_map()
+            self._wait_fresh_map(emptied, MAP_SETTLE_FRAMES)
+            if not self._move(np.asarray(scene.start_rad, float), GoalRecord(-1, -1, [], True, False)):
+                raise RuntimeError(f"scene {scene.name}: could not reach its start")
+        self._objects(SimObjectsRequest(operation="set", objects=tuple(object_spec(o) for o in scene.objects)))
+        swapped = time.time()
+        self._clear_map()
+        if not self._wait_fresh_map(swapped, MAP_SETTLE_FRAMES):
+            raise RuntimeError("no occupancy map after the scene swap")
+
+    def go_home(self) -> None:
+        if float(np.max(np.abs(self._q() - self.home))) <= HOME_TOLERANCE_RAD:
+            return
+        for _ in range(2):
+            if self._move(self.home, GoalRecord(-1, -1, [], True, False)):
+                return
+        # Stuck (e.g. boxed in by a noisy map): empty the world, then the way home is free.
+        log.warning("going home through an emptied scene")
+        self._objects(SimObjectsRequest(operation="set"))
+        emptied = time.time()
+        self._clear_map()
+        self._wait_fresh_map(emptied, MAP_SETTLE_FRAMES)
+        if self._move(self.home, GoalRecord(-1, -1, [], True, False)):
+            return
+        # The world is empty in truth, so a straight joint-space move is safe whatever the map
+        # says (an operator jogging the arm in an empty cell). Counted: it bypasses the planner.
+        self.resets += 1
+        log.warning("jogging the arm home in the empty world (reset %d)", self.resets)
+        execution = self.client.execute(np.vstack([self._q(), self.home]), trajectory_id=f"campaign-reset-{self.resets}")
+        if isinstance(execution, ErrorReply):
+            raise RuntimeError(f"could not bring the arm home: {execution.code}: {execution.message}")
+        self.client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + self.cfg.demo.goal_timeout_s)
+        if float(np.max(np.abs(self._q() - self.home))) > HOME_TOLERANCE_RAD:
+            raise RuntimeError("could not bring the arm home")
+
+    def run(self, index: int, scene: Scene, *, moving: bool, rng: np.random.Generator) -> dict[str, Any]:
+        started = time.monotonic()
+        self.swap_in(scene)
+        self.view.set_objects(perceivable_objects(scene.objects, self.cfg.perception.workspace_min_m[2]))
+        truth = self.truth
+        truth.set_objects(scene.objects)
+        top_z = max((o.position_m[2] + o.local_bounds_m[1][2] for o in scene.objects if o.name == "table"), default=0.0)
+        region_min = np.array(self.cfg.perception.workspace_min_m, dtype=np.float64)
+        region_max = np.array(self.cfg.perception.workspace_max_m, dtype=np.float64)
+        region_min[2] = max(region_min[2], top_z + 0.05)
+        records: list[GoalRecord] = []
+        goals = [np.asarray(g, float) for g in scene.goals_rad][: self.goals_per_scene]
+        for g in range(self.goals_per_scene if not goals else len(goals)):
+            start = self._q()
+            if goals:
+                goal, detour = goals[g], not truth.motion_valid(start, goals[g], 0.01)
+            else:
+                sample = sample_goal(self.view, rng, start, link=self.link, region_min_m=region_min,
+                                     region_max_m=region_max, min_clearance_m=self.margin_m,
+                                     want_blocked=(g % 2 == 0) or None)
+                if sample is None:
+                    sample = sample_goal(self.view, rng, start, link=self.link, region_min_m=region_min,
+                                         region_max_m=region_max, min_clearance_m=self.margin_m)
+                if sample is None:
+                    log.warning("scene %d: no goal found", index)
+                    continue
+                goal, detour = sample.q, not truth.motion_valid(start, sample.q, 0.01)
+            reference = self.reference.plan(PlanProblem(start_rad=start, goals_rad=goal, allowed_planning_time_s=2.0,
+                                                        seed=self.seed + index * 100 + g))
+            record = GoalRecord(index, g, np.round(goal, 4).tolist(), reference.status is PlanStatus.SUCCESS, detour,
+                                moving=moving and g == 0)
+            self._move(goal, record)
+            records.append(record)
+            if record.moving:
+                self._objects(SimObjectsRequest(operation="cancel"))
+                names = {o.name for o in self._objects(SimObjectsRequest(operation="list")).objects}
+                if "intruder" in names:
+                    self._objects(SimObjectsRequest(operation="remove", names=("intruder",)))
+        # Reset here, not at the swap: contacts while going home count for the scene that follows.
+        contacts = self.client.contacts(reset=True)
+        if isinstance(contacts, ErrorReply):
+            raise RuntimeError(f"sim/contacts: {contacts.code}: {contacts.message}")
+        return {"index": index, "scene": scene.name, "objects": len(scene.objects), "moving": moving,
+                "contacts": contacts.contact_count, "contact_pairs": list(contacts.pairs),
+                "min_distance_m": contacts.min_distance_m, "min_distance_pair": contacts.min_distance_pair, "goals": [r.__dict__ for r in records],
+                "wall_s": round(time.monotonic() - started, 2)}
+
+    # --- one goal -------------------------------------------------------------------------
+
+    def _move(self, goal: np.ndarray, record: GoalRecord) -> bool:
+        """Plan, execute and replan until `goal` is reached or attempts run out."""
+        armed = False
+        for attempt in range(MAX_ATTEMPTS):
+            if attempt > 0:
+                record.replans += 1
+                self._wait_fresh_map(time.time())
+            self.plan_seq += 1
+            plan = self.client.plan(goal, seed=self.seed + self.plan_seq, request_id=f"campaign-{self.plan_seq}")
+            if isinstance(plan, ErrorReply):
+                record.errors.append(f"plan:{plan.code}")
+                if plan.code not in RETRYABLE:
+                    break
+                continue
+            assert isinstance(plan, PlanResponse)
+            record.planning_ms.append(round(plan.planning_time_s * 1e3, 2))
+            if plan.min_clearance_m is not None:
+                record.plan_min_clearance_m = round(min(plan.min_clearance_m, record.plan_min_clearance_m or np.inf), 4)
+            true_clearance = self.truth.path_clearance_m(plan.path, self.cfg.planner.edge_resolution_rad)
+            if np.isfinite(true_clearance):
+                record.plan_true_clearance_m = round(min(true_clearance, record.plan_true_clearance_m or np.inf), 4)
+            trajectory_id = f"campaign-{record.scene}-{record.index}-{attempt}-{self.plan_seq}"
+            fields: dict[str, Any] = {"joint_names": plan.joint_names, "trajectory_id": trajectory_id}
+            if self.scaling is not None:
+                fields.update(max_velocity_scaling_factor=self.scaling, max_acceleration_scaling_factor=self.scaling)
+            execution = self.client.execute(plan.path, **fields)
+            if isinstance(execution, ErrorReply):
+                record.errors.append(f"execute:{execution.code}")
+                if execution.code not in RETRYABLE:
+                    break
+                continue
+            assert isinstance(execution, ExecuteResponse)
+            if record.moving and not armed:
+                self._intruder_rest_at = time.time() + INTRUDER_SLIDE_S
+                record.intruder = self._arm_intruder(plan.path, trajectory_id, record)
+                armed = True
+            record.result = self._follow(trajectory_id, plan.path, execution.duration_s, record)
+            if record.result == "succeeded":
+                self.client.wait_for(lambda: float(np.max(np.abs(self._q() - goal))) <= 0.1 * self.cfg.demo.goal_tolerance_rad,
+                                     2.0)
+                record.final_error_rad = round(float(np.max(np.abs(self._q() - goal))), 5)
+                record.reached = record.final_error_rad <= self.cfg.demo.goal_tolerance_rad
+                if record.reached:
+                    return True
+        return False
+
+    def _follow(self, trajectory_id: str, path: np.ndarray, duration_s: float, record: GoalRecord) -> str:
+        """Wait for the trajectory to end; with the guard on, stop it when a new map blocks the rest."""
+        deadline = time.monotonic() + duration_s + self.cfg.demo.goal_timeout_s
+        seen_seq = self.client.occupancy.seq if self.client.occupancy is not None else -1
+        if self.guard is not None:
+            occupancy = self.client.occupancy
+            self.guard.start(None if occupancy is None else occupancy.occupied_centers_m,
+                             0.0 if occupancy is None else occupancy.resolution_m)
+
+        def finished() -> bool:
+            s = self.client.status
+            return s is not None and s.trajectory_id == trajectory_id and s.state in ("idle", "stopped", "error")
+
+        def woken() -> bool:
+            return finished() or (self.client.occupancy is not None and self.client.occupancy.seq != seen_seq)
+
+        while time.monotonic() < deadline:
+            self.client.wait_for(woken, max(0.0, deadline - time.monotonic()))
+            if finished():
+                status = self.client.status
+                assert status is not None
+                return status.last_result if status.state == "idle" else status.state
+            occupancy = self.client.occupancy
+            if occupancy is None or occupancy.seq == seen_seq:
+                continue
+            seen_seq = occupancy.seq
+            if self.guard is None:
+                continue
+            check_started = time.perf_counter()
+            self.guard.update_map(occupancy.occupied_centers_m, occupancy.resolution_m)
+            blocked = self.guard.remaining_blocked(path, self._q())
+            record.guard_check_ms.append(round((time.perf_counter() - check_started) * 1e3, 1))
+            if blocked:
+                record.guard_stops += 1
+                if record.intruder and record.guard_delay_s is None:
+                    record.guard_delay_s = round(time.time() - self._intruder_rest_at, 3)
+                    record.guard_map_age_s = round(time.time() - occupancy.stamp, 3)
+                log.info("%s: the rest of the path is blocked in map %d: stopping to replan", trajectory_id, seen_seq)
+                self.client.stop()
+                self.client.wait_for(finished, 10.0)
+                return "guard_stop"
+        return "timeout"
+
+    def _arm_intruder(self, path: np.ndarray, trajectory_id: str, record: GoalRecord) -> bool:
+        """Slide a box onto the path as the arm starts, resting at least `INTRUDER_LEAD_S` before any
+        link would come near it (timed with the executor's own parameterization of the path)."""
+        scaling = self.scaling
+        trajectory = time_parameterize(
+            path, max_velocity=self.robot.velocity_limits, max_acceleration=self.robot.acceleration_limits,
+            max_jerk=self.robot.jerk_limits,
+            velocity_scaling=scaling or self.cfg.executor.velocity_scaling,
+            acceleration_scaling=scaling or self.cfg.executor.acceleration_scaling,
+            max_path_deviation_rad=self.cfg.executor.max_path_deviation_rad)
+        times, q, _, _ = trajectory.sample_uniform(0.05)
+        intruder = intruder_for_trajectory(self.robot, times, q, link=self.link, slide_s=INTRUDER_SLIDE_S,
+                                           min_lead_s=INTRUDER_LEAD_S)
+        if intruder is None:
+            log.info("%s: too short for an avoidable intruder", trajectory_id)
+            return False
+        record.intruder_lead_s = round(intruder.lead_s, 2)
+        self._objects(SimObjectsRequest(operation="add", objects=(object_spec(intruder.start),)))
+        self._objects(SimObjectsRequest(operation="script", motions=(ObjectMotionSpec(
+            "intruder", position_m=intruder.target_m, duration_s=INTRUDER_SLIDE_S, at_progress=0.0,
+            trajectory_id=trajectory_id),)))
+        return True

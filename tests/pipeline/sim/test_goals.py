@@ -1,0 +1,98 @@
+"""Campaign goals: free, clear and in the region; detours when asked; intruders land on the path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robonav.pipeline.collision import CollisionWorld
+from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.sim.goals import intruder_for_trajectory, perceivable_objects, point_along_path, sample_goal
+from robonav.pipeline.sim.scenes import ClutterConfig, clutter_scene
+from robonav.services.config import load_config
+
+ROBOT = RobotModel.from_config(load_config().robot)  # with the Panda's allowed-collision pairs
+HOME = ROBOT.home_position_rad
+REGION = (np.array([0.2, -0.6, 0.25]), np.array([0.9, 0.6, 0.9]))
+
+
+def test_perceivable_objects_are_solid_down_to_the_floor() -> None:
+    tilted = SceneObject("cyl", "cylinder", (0.5, 0.2, 0.4), quat_xyzw=(0.0, 0.38268, 0.0, 0.92388), radius_m=0.05,
+                         length_m=0.2)
+    (box,) = perceivable_objects([tilted], floor_z_m=0.0)
+    centre, half = box.local_bounds_m
+    low, high = np.array(box.position_m) - half, np.array(box.position_m) + half
+    assert low[2] == pytest.approx(0.0) and box.type == "box" and box.name == "cyl"
+    # The tilted cylinder's ends reach beyond its radius in x; the box covers them.
+    assert high[2] == pytest.approx(0.4 + 0.1 * 0.7071 + 0.05 * 0.7071, abs=1e-3)
+    assert low[0] < 0.5 - 0.1 and high[0] > 0.5 + 0.1
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_sampled_goals_are_free_clear_in_the_region_and_detour_when_asked(seed: int) -> None:
+    scene = clutter_scene(ClutterConfig(), np.random.default_rng((3, seed)))
+    world = CollisionWorld(ROBOT, padding_m=0.05)
+    world.set_objects(perceivable_objects(scene.objects, 0.0))
+    rng = np.random.default_rng(seed)
+    for want_blocked in (True, None):
+        goal = sample_goal(world, rng, HOME, link="panda_hand", region_min_m=REGION[0], region_max_m=REGION[1],
+                           min_clearance_m=0.05, want_blocked=want_blocked)
+        assert goal is not None
+        assert not world.in_collision(goal.q) and goal.clearance_m >= 0.05
+        assert np.all(goal.link_position_m >= REGION[0]) and np.all(goal.link_position_m <= REGION[1])
+        assert goal.straight_blocked == (not world.motion_valid(HOME, goal.q, 0.02))
+        assert want_blocked is None or goal.straight_blocked
+        assert np.max(np.abs(goal.q - HOME)) >= 0.5
+    again = sample_goal(world, np.random.default_rng(seed), HOME, link="panda_hand", region_min_m=REGION[0],
+                        region_max_m=REGION[1], min_clearance_m=0.05, want_blocked=True)
+    first = sample_goal(world, np.random.default_rng(seed), HOME, link="panda_hand", region_min_m=REGION[0],
+                        region_max_m=REGION[1], min_clearance_m=0.05, want_blocked=True)
+    assert again is not None and first is not None and np.array_equal(again.q, first.q)
+
+
+def test_no_goal_when_nothing_qualifies() -> None:
+    world = CollisionWorld(ROBOT, padding_m=0.0)
+    nowhere = sample_goal(world, np.random.default_rng(0), HOME, link="panda_hand", region_min_m=[5, 5, 5],
+                          region_max_m=[6, 6, 6], min_clearance_m=0.0, attempts=50)
+    assert nowhere is None
+
+
+def test_points_along_a_path_follow_its_length() -> None:
+    path = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 3.0]])
+    np.testing.assert_allclose(point_along_path(path, 0.0), [0.0, 0.0])
+    np.testing.assert_allclose(point_along_path(path, 0.25), [1.0, 0.0])
+    np.testing.assert_allclose(point_along_path(path, 0.5), [1.0, 1.0])
+    np.testing.assert_allclose(point_along_path(path, 2.0), [1.0, 3.0])
+    np.testing.assert_allclose(point_along_path(path[:1], 0.5), [0.0, 0.0])
+
+
+@pytest.mark.parametrize("goal_offset", [[2.0, 0.3, 0.0, 0.3, 0.0, -0.2, 0.0], [-2.0, 0.2, 0.3, 0.2, 0.0, 0.0, 0.3]])
+def test_the_intruder_slides_in_clear_of_the_arm_and_rests_ahead_of_it(goal_offset: list[float]) -> None:
+    times = np.linspace(0.0, 3.0, 61)
+    # A smooth rest-to-rest motion; the box must rest 1 s before any link comes within 10 cm.
+    path = HOME + (0.5 - 0.5 * np.cos(np.pi * times / 3.0))[:, None] * np.array(goal_offset)
+    intruder = intruder_for_trajectory(ROBOT, times, path, link="panda_hand", slide_s=0.5, min_lead_s=1.0)
+    assert intruder is not None and intruder.lead_s >= 1.0
+    k = int(np.argmin(np.abs(times - intruder.target_time_s)))
+    np.testing.assert_allclose(intruder.target_m, ROBOT.frame_pose(path[k], "panda_hand")[:3, 3])
+    rest = intruder.start.with_pose(np.block([[np.eye(3), np.array(intruder.target_m)[:, None]], [np.zeros((1, 3)), 1.0]]))
+    world = CollisionWorld(ROBOT, padding_m=0.0)
+    world.set_objects([rest])
+    assert world.in_collision(path[k])  # resting, the box blocks the arm's way
+    threat = CollisionWorld(ROBOT, padding_m=0.1)
+    threat.set_objects([rest])
+    assert not any(threat.in_collision(q) for q in path[times < 0.5 + intruder.lead_s - 1e-9])
+    start = np.array(intruder.start.position_m)
+    near = CollisionWorld(ROBOT, padding_m=0.05)
+    for t, q in zip(times[times <= 0.5], path[times <= 0.5]):  # sliding, it never comes near the arm
+        pose = np.eye(4)
+        pose[:3, 3] = start + (t / 0.5) * (np.array(intruder.target_m) - start)
+        near.set_objects([intruder.start.with_pose(pose)])
+        assert not near.in_collision(q)
+
+
+def test_no_intruder_when_the_trajectory_is_too_short() -> None:
+    times = np.linspace(0.0, 1.0, 21)
+    path = HOME + times[:, None] * np.array([0.5, 0, 0, 0, 0, 0, 0])
+    assert intruder_for_trajectory(ROBOT, times, path, link="panda_hand", slide_s=0.5, min_lead_s=1.0) is None

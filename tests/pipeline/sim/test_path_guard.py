@@ -1,0 +1,78 @@
+"""The path guard: blocked only by new voxels on the rest of the path, at least as cautious as the planner."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robonav.pipeline.collision import CollisionWorld
+from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.sim.path_guard import PathGuard
+from robonav.services.config import load_config
+
+CFG = load_config()
+ROBOT = RobotModel.from_config(CFG.robot)
+HOME = ROBOT.home_position_rad
+PATH = np.array([HOME, HOME + [1.0, 0.2, 0.0, 0.3, 0.0, 0.0, 0.0], HOME + [2.0, 0.3, 0.0, 0.3, 0.0, -0.2, 0.0]])
+
+
+def cube_of_voxels(centre: np.ndarray, size_m: float = 0.1, voxel_m: float = 0.02) -> np.ndarray:
+    axis = np.arange(-size_m / 2 + voxel_m / 2, size_m / 2, voxel_m)
+    return centre + np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def blocked(guard: PathGuard, centres: np.ndarray, path: np.ndarray, q_now: np.ndarray) -> bool:
+    guard.update_map(centres, 0.02)
+    return guard.remaining_blocked(path, q_now)
+
+
+@pytest.fixture(scope="module")
+def guard() -> PathGuard:
+    return PathGuard(ROBOT, padding_m=CFG.robot.padding_m, inflation_m=CFG.perception.inflation_m,
+                     edge_resolution_rad=0.02)
+
+
+def test_voxels_on_the_path_ahead_block_it_and_behind_do_not(guard: PathGuard) -> None:
+    guard.start(None)
+    on_path = ROBOT.frame_pose(PATH[2], "panda_hand")[:3, 3]
+    blocking = cube_of_voxels(on_path)
+    assert blocked(guard, blocking, PATH, HOME)
+    assert not blocked(guard, blocking, PATH[:2], HOME)  # a path that stops short of it
+    far = cube_of_voxels(np.array([-0.8, -0.8, 1.2]))
+    assert not blocked(guard, far, PATH, HOME)
+    start = ROBOT.frame_pose(HOME, "panda_hand")[:3, 3] + [0.0, 0.0, 0.3]
+    behind = cube_of_voxels(start)  # above where the arm started: already passed
+    assert not blocked(guard, behind, PATH, PATH[2])
+    assert not blocked(guard, np.zeros((0, 3)), PATH, HOME)
+
+
+def test_states_ahead_start_near_the_arm_and_end_at_the_goal(guard: PathGuard) -> None:
+    q_now = PATH[0] + 0.5 * (PATH[1] - PATH[0])
+    states = guard.states_ahead(PATH, q_now)
+    assert np.max(np.abs(states[0] - q_now)) == pytest.approx(0.05, abs=1e-9)
+    np.testing.assert_allclose(states[-1], PATH[-1])
+    assert np.max(np.abs(np.diff(states, axis=0))) <= 0.02 + 1e-9
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_guard_is_at_least_as_cautious_as_the_planner(guard: PathGuard, seed: int) -> None:
+    """Wherever a box's voxels make the planner's (padded hulls vs box) check fail, the guard blocks too."""
+    rng = np.random.default_rng(seed)
+    guard.start(None)
+    world = CollisionWorld(ROBOT, padding_m=CFG.robot.padding_m + CFG.perception.inflation_m)
+    for k in range(6):
+        centre = ROBOT.frame_pose(PATH[int(rng.integers(1, 3))], "panda_hand")[:3, 3] + rng.uniform(-0.15, 0.15, 3)
+        world.set_objects([SceneObject("box", "box", tuple(centre), size_m=(0.1, 0.1, 0.1))])
+        if not world.path_valid(PATH, 0.02):
+            assert blocked(guard, cube_of_voxels(centre), PATH, HOME)
+
+
+def test_only_voxels_new_since_the_plan_count(guard: PathGuard) -> None:
+    on_path = ROBOT.frame_pose(PATH[2], "panda_hand")[:3, 3]
+    known = cube_of_voxels(on_path)
+    guard.start(known, 0.02)  # the planner saw these and (being less cautious) accepted the path
+    assert not blocked(guard, known, PATH, HOME)
+    arrived = ROBOT.frame_pose(PATH[1], "panda_hand")[:3, 3]
+    both = np.vstack([cube_of_voxels(on_path), cube_of_voxels(arrived)])
+    assert blocked(guard, both, PATH, HOME)
