@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 from robonav.pipeline.config import require
 from robonav.pipeline.transforms import FloatArray, make_transform
@@ -40,12 +41,16 @@ class CameraConfig:
     quat_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
     """Orientation of the optical frame in the world frame, scalar last."""
     rate_hz: float = 5.0
+    output: Literal["cloud", "depth", "both"] = "cloud"
+    """What the camera publishes: `camera/<id>/cloud` (points), `camera/<id>/depth` (the image) or both."""
 
     def __post_init__(self) -> None:
         require(self.width > 0 and self.height > 0, f"camera width/height must be > 0, got {self.width}x{self.height}")
         require(0 < self.vertical_fov_deg < 180, f"camera vertical_fov_deg must be in (0, 180), got {self.vertical_fov_deg}")
         require(0 < self.near_m < self.far_m, f"camera needs 0 < near_m < far_m, got {self.near_m}, {self.far_m}")
         require(self.rate_hz > 0, f"camera rate_hz must be > 0, got {self.rate_hz}")
+        require(self.output in ("cloud", "depth", "both"),
+                f"camera output must be 'cloud', 'depth' or 'both', got {self.output!r}")
 
     @property
     def world_from_camera(self) -> FloatArray:

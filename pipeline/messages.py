@@ -397,6 +397,8 @@ class ContactsResponse(Message):
     """'link|object' for every pair that ever touched."""
     min_distance_m: float | None = None
     """Smallest robot–obstacle distance seen [m]; absent when nothing came within the sim's query range."""
+    min_distance_pair: str | None = None
+    """'link|object' of that smallest distance."""
     ok: bool = True
 
 
