@@ -122,27 +122,41 @@ def cluster_voxels(
     return ClusterSet(centroids, bbox_min, bbox_max, counts.astype(np.int64), label_ids, members)
 
 
-def _support(ijk: IntArray, min_voxels: int) -> npt.NDArray[np.bool_]:
-    """The supporting surface: voxels at or below the layer where most columns end.
+def support_layer(ijk: IntArray, min_voxels: int) -> tuple[int, IntArray, IntArray] | None:
+    """The supporting surface's layer: where most columns end.
 
     The layer holding the most column tops (voxels with nothing occupied above them) is the
-    top of a table or the floor, if it has at least `min_voxels` of them; every voxel at or
-    below that layer, in a column that reaches it, belongs to the support.
+    top of a table or the floor, if it has at least `min_voxels` of them.
+
+    Returns:
+        (layer k, (C, 2) the (i, j) of the columns whose top is in it, (N,) for each voxel
+        whether its column reaches the layer), or None when no layer has enough tops.
     """
-    mask = np.zeros(ijk.shape[0], dtype=bool)
     if min_voxels <= 0 or ijk.shape[0] == 0:
-        return mask
+        return None
     # One int per (i, j) column: np.unique on rows (axis=0) is several times slower.
-    ij = ijk[:, :2] - ijk[:, :2].min(axis=0)
-    columns, column_of = np.unique(ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1], return_inverse=True)
+    origin = ijk[:, :2].min(axis=0)
+    ij = ijk[:, :2] - origin
+    width = int(ij[:, 1].max()) + 1
+    columns, column_of = np.unique(ij[:, 0] * width + ij[:, 1], return_inverse=True)
     column_of = column_of.ravel()
     top = np.full(columns.shape[0], np.iinfo(np.int64).min)
     np.maximum.at(top, column_of, ijk[:, 2])
     layers, counts = np.unique(top, return_counts=True)
     best = int(np.argmax(counts))
     if counts[best] < min_voxels:
-        return mask
-    layer = layers[best]
+        return None
+    layer = int(layers[best])
+    topped = columns[top == layer]
     reaches = np.zeros(columns.shape[0], dtype=bool)
     reaches[column_of[ijk[:, 2] == layer]] = True
-    return reaches[column_of] & (ijk[:, 2] <= layer)
+    return layer, np.column_stack([topped // width, topped % width]) + origin, reaches[column_of]
+
+
+def _support(ijk: IntArray, min_voxels: int) -> npt.NDArray[np.bool_]:
+    """The supporting surface: every voxel at or below the support layer, in a column that reaches it."""
+    found = support_layer(ijk, min_voxels)
+    if found is None:
+        return np.zeros(ijk.shape[0], dtype=bool)
+    layer, _, reaches = found
+    return reaches & (ijk[:, 2] <= layer)

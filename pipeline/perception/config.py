@@ -29,6 +29,17 @@ class PerceptionConfig:
     the planner treats as free. Assuming what is seen rests on solid matter (true for objects
     on a table or floor; conservative under overhangs) fills objects' unseen interiors and
     back halves. Rays that later pass through the filled space clear it as usual."""
+    complete_support: bool = True
+    """Complete the supporting surface (table top or floor) where nothing has been seen of it.
+
+    Objects on a table and the arm itself cast shadows on it, which OctoMap leaves unknown and
+    the planner treats as free: a path may then dip into the table behind the objects. The
+    support layer (where most columns of the map end, `support_min_columns` of them at least)
+    is taken to be flat and whole across the smallest rectangle that holds what was seen of
+    it: its unknown cells there become occupied, except inside the robot. A cell a camera
+    later sees through is cleared as usual and stays clear (e.g. a real gap between tables)."""
+    support_min_columns: int = 200
+    """A horizontal layer is a supporting surface when at least this many columns end in it."""
     max_update_rate_hz: float = 30.0
     """Frames arriving faster than this are dropped (latest-only)."""
     clustering: Literal["components", "dbscan"] = "components"
@@ -75,6 +86,8 @@ class PerceptionConfig:
         require(0.0 < self.prob_miss < 0.5, f"perception.prob_miss must be in (0, 0.5), got {self.prob_miss}")
         require(self.clustering in ("components", "dbscan"),
                 f"perception.clustering must be 'components' or 'dbscan', got {self.clustering!r}")
+        require(self.support_min_columns >= 1,
+                f"perception.support_min_columns must be >= 1, got {self.support_min_columns}")
         require(self.cluster_min_voxels >= 1, f"perception.cluster_min_voxels must be >= 1, got {self.cluster_min_voxels}")
         require(self.clusters_rate_hz > 0, f"perception.clusters_rate_hz must be > 0, got {self.clusters_rate_hz}")
         require(self.clearing in ("projection", "raycast"),

@@ -20,12 +20,14 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 import octomap
 
 from robonav.pipeline.camera import CameraIntrinsics
 from robonav.pipeline.perception import voxel_kernels as kernels
+from robonav.pipeline.perception.clusters import support_layer
 from robonav.pipeline.perception.config import PerceptionConfig
 from robonav.pipeline.perception.filtering import BoolArray, FloatArray, validate_transform
 from robonav.pipeline.perception.occupancy import inflation_offsets
@@ -234,6 +236,9 @@ class ProjectionOccupancyMap:
         freed = np.concatenate([misses[log_odds[misses] <= 0.0], robot_voxels])
         if now_occupied.size or freed.size:
             self._occupied_cache = None
+            if cfg.complete_support:
+                completed = self._complete_support(self_filter, world_from_link)
+                now_occupied = np.concatenate([now_occupied, completed])
         lap("update")
 
         self._apply_inflation(now_occupied, np.unique(freed))
@@ -245,6 +250,36 @@ class ProjectionOccupancyMap:
             robot_cleared=robot_cleared, newly_occupied=int(now_occupied.size), newly_freed=int(np.unique(freed).size),
             stage_ms=stage_ms,
         )
+
+    def _complete_support(self, self_filter: SelfFilter | None,
+                          world_from_link: Mapping[str, npt.ArrayLike] | None) -> IntArray:
+        """Mark the support layer's never-seen cells inside its seen extent occupied (see
+        `PerceptionConfig.complete_support`); returns their flat indices."""
+        occupied = self.occupied_indices()
+        found = support_layer(self.ijk(occupied), self._config.support_min_columns)
+        if found is None:
+            return np.empty(0, dtype=np.int64)
+        layer, columns, _ = found
+        # The smallest rotated rectangle around the seen part: a table top at any yaw (OpenCV's
+        # rotating calipers; a convex hull would cut the corner off a table whose corner is in shadow).
+        (cx, cy), (w, h), angle_deg = cv2.minAreaRect(columns.astype(np.float32))
+        corners = cv2.boxPoints(((cx, cy), (w, h), angle_deg))
+        lo = np.maximum(np.floor(corners.min(axis=0)).astype(np.int64), 0)
+        hi = np.minimum(np.ceil(corners.max(axis=0)).astype(np.int64), self._dims[:2] - 1)
+        ii, jj = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), indexing="ij")
+        cells = np.column_stack([ii.ravel(), jj.ravel()])
+        angle = np.deg2rad(angle_deg)
+        axes = np.array([[np.cos(angle), np.sin(angle)], [-np.sin(angle), np.cos(angle)]])
+        local = (cells - (cx, cy)) @ axes.T
+        inside = np.all(np.abs(local) <= np.array([w, h]) / 2.0 + 0.5, axis=1)
+        flat = (cells[inside, 0] * self._dims[1] + cells[inside, 1]) * self._dims[2] + layer
+        unknown = flat[self._log_odds[flat] == 0.0]
+        if unknown.size and self_filter is not None and world_from_link is not None:
+            unknown = unknown[self_filter.outside_mask(self.centres_m(unknown), world_from_link)]
+        if unknown.size:
+            self._log_odds[unknown] = self._l_hit
+            self._occupied_cache = None
+        return unknown
 
     def free_where(self, inside: Callable[[FloatArray], BoolArray]) -> int:
         """Free every occupied voxel whose centre `inside` flags (space known to be taken by

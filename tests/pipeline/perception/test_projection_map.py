@@ -204,6 +204,53 @@ def test_planning_binary_holds_the_inflated_voxels(robot: RobotModel, self_filte
     assert not occupied(np.array([-0.5, -0.5, 1.0]))
 
 
+def table_columns_missing(m: ProjectionOccupancyMap, table: SceneObject = TABLE) -> int:
+    """Columns over the table top with no occupied voxel at or above its top layer."""
+    centres = m.occupied_centers_m()
+    top = table.position_m[2] + table.size_m[2] / 2
+    seen = set(map(tuple, np.floor(centres[centres[:, 2] > top - RES][:, :2] / RES).astype(int)))
+    lo = np.round((np.asarray(table.position_m[:2]) - np.asarray(table.size_m[:2]) / 2) / RES).astype(int)
+    hi = np.round((np.asarray(table.position_m[:2]) + np.asarray(table.size_m[:2]) / 2) / RES).astype(int)
+    return sum((i, j) not in seen for i in range(lo[0], hi[0]) for j in range(lo[1], hi[1]))
+
+
+def test_the_table_is_whole_in_the_shadow_of_a_tall_object(robot: RobotModel, self_filter: SelfFilter) -> None:
+    """A shelf-high box hides a stretch of table from the camera; completion fills it, and only it."""
+    tower = SceneObject("tower", "box", (0.7, 0.1, 0.4), size_m=(0.1, 0.3, 0.4))
+    frame = render(TABLE, tower)
+    plain = ProjectionOccupancyMap(dataclasses.replace(CONFIG, complete_support=False))
+    completed = ProjectionOccupancyMap(CONFIG)
+    for _ in range(2):
+        integrate(plain, frame, robot, self_filter)
+        integrate(completed, frame, robot, self_filter)
+    assert table_columns_missing(plain) > 50  # the shadow (and the arm's)
+    assert table_columns_missing(completed) == 0
+    centres = completed.occupied_centers_m()
+    top = TABLE.position_m[2] + TABLE.size_m[2] / 2
+    layer = centres[np.abs(centres[:, 2] - (top + RES / 2)) < RES / 2]
+    half = np.asarray(TABLE.size_m[:2]) / 2 + RES
+    assert np.all(np.abs(layer[:, :2] - TABLE.position_m[:2]) <= half)  # nothing beyond the table's edges
+    assert np.all(self_filter.outside_mask(centres, robot.link_poses(HOME)))  # nor inside the arm
+
+
+def test_a_gap_between_tables_that_a_camera_sees_through_stays_free(robot: RobotModel, self_filter: SelfFilter) -> None:
+    near = SceneObject("near", "box", (0.4, 0.0, 0.1), size_m=(0.2, 1.2, 0.2))
+    far = SceneObject("far", "box", (0.7, 0.0, 0.1), size_m=(0.2, 1.2, 0.2))
+    frame = render(near, far)
+    m = ProjectionOccupancyMap(CONFIG)
+
+    def in_gap() -> np.ndarray:
+        centres = m.occupied_centers_m()
+        return centres[(centres[:, 0] > 0.52) & (centres[:, 0] < 0.58) & (np.abs(centres[:, 1]) < 0.4)
+                       & (centres[:, 2] > 0.15)]
+
+    integrate(m, frame, robot, self_filter)
+    assert len(in_gap()) > 0  # the first frame completes the two tops into one...
+    for _ in range(3):
+        integrate(m, frame, robot, self_filter)
+    assert len(in_gap()) == 0, in_gap()[:10]  # ...the next ones see through the gap and keep it clear
+
+
 def test_bad_input_is_refused_with_a_clear_error() -> None:
     m = ProjectionOccupancyMap(CONFIG)
     k = FRONT.intrinsics
