@@ -14,7 +14,7 @@ from robonav.pipeline.camera import CameraIntrinsics
 from robonav.pipeline.wire import ErrorCode, FloatArray, Message, ProtocolError, array_field, unpack
 
 ExecutorState = Literal["idle", "executing", "stopping", "stopped", "error"]
-EXECUTOR_STATES: tuple[str, ...] = ("idle", "executing", "stopping", "stopped", "error")
+EXECUTOR_STATES: tuple[str, ...] = ("idle", "executing", "stopping", "stopped", "error", "replanning")
 
 
 def _check_same_length(owner: str, names: tuple[str, ...], **arrays: np.ndarray | None) -> None:
@@ -296,10 +296,18 @@ class ExecuteRequest(Message):
     max_velocity_scaling_factor: float | None = None
     max_acceleration_scaling_factor: float | None = None
     trajectory_id: str | None = None
+    replan: bool = False
+    """When a new obstacle blocks the rest of the path: stop, plan again from the rest state to
+    the path's last waypoint, continue (MoveIt's `replan`). Without it the arm stops with
+    error PATH_BLOCKED."""
+    replan_attempts: int | None = None
+    """Plans tried per block before giving up; default executor.replan_attempts."""
 
     def __post_init__(self) -> None:
         if self.path.shape[0] < 1:
             raise ValueError("ExecuteRequest: path has no waypoints")
+        if self.replan_attempts is not None and self.replan_attempts < 1:
+            raise ValueError(f"ExecuteRequest: replan_attempts must be >= 1, got {self.replan_attempts}")
         if self.joint_names is not None:
             _check_same_length("ExecuteRequest", self.joint_names, path=self.path)
         _check_scaling_factors("ExecuteRequest", self.max_velocity_scaling_factor,
@@ -360,6 +368,11 @@ class ExecutorStatus(Message):
     """Outcome of the last trajectory: none, succeeded, stopped, aborted."""
     error_code: str = ""
     error_message: str = ""
+    replans: int = 0
+    """New paths planned for this trajectory id after its path was blocked."""
+    blocked_after_frame_s: float | None = None
+    """At the last block: from the stamp of the newest camera frame in the map that showed it to
+    the stop command [s]."""
 
     def __post_init__(self) -> None:
         if self.state not in EXECUTOR_STATES:

@@ -22,7 +22,7 @@ from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.sim.goals import intruder_for_trajectory, perceivable_objects, sample_goal
-from robonav.pipeline.sim.path_guard import PathGuard
+from robonav.pipeline.trajectory.path_guard import PathGuard
 from robonav.pipeline.sim.scenes import Scene
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.services.client import QueryFailed, RobonavClient

@@ -40,6 +40,20 @@ def _no_reply(key: str, timeout_s: float, started: float) -> QueryFailed:
         "control denied this client (Zenoh drops denied messages without an error)")
 
 
+def query_one(session: zenoh.Session, key: str, request: Message, expected: type[M],
+              timeout_s: float) -> tuple[M | ErrorReply, str | None]:
+    """Ask the best-matching service on `key` for one reply; returns it and the replier's Zenoh id.
+
+    Raises:
+        QueryFailed: nothing answered within `timeout_s`.
+    """
+    started = time.monotonic()
+    for reply in session.get(key, payload=request.to_wire(), timeout=timeout_s):
+        sample = reply.ok if reply.ok is not None else reply.err
+        return decode_reply(sample.payload.to_bytes(), expected), _replier(reply)  # type: ignore[return-value]
+    raise _no_reply(key, timeout_s, started)
+
+
 class RobonavClient:
     """Subscribes to joint states, occupancy and executor status; sends queries."""
 
@@ -90,13 +104,8 @@ class RobonavClient:
 
     def query(self, key: str, request: Message, expected: type[M], timeout_s: float) -> M | ErrorReply:
         """Ask the best-matching service on `key` (one of several planner replicas) for one reply."""
-        started = time.monotonic()
-        for reply in self.session.get(key, payload=request.to_wire(), timeout=timeout_s):
-            self.last_replier = _replier(reply)
-            if reply.ok is not None:
-                return decode_reply(reply.ok.payload.to_bytes(), expected)  # type: ignore[return-value]
-            return decode_reply(reply.err.payload.to_bytes(), expected)  # type: ignore[return-value]
-        raise _no_reply(key, timeout_s, started)
+        message, self.last_replier = query_one(self.session, key, request, expected, timeout_s)
+        return message
 
     def race(self, key: str, request: Message, expected: type[M], timeout_s: float) -> M | ErrorReply:
         """Send to every service on `key` at once; return the first success as soon as it arrives.

@@ -66,6 +66,17 @@ class ExecutorConfig:
     """Watchdog: how far back setpoints count for the tracking error (the loop's latency) [s]."""
     busy_wait_s: float = 0.0
     """The streaming loop polls the clock for this long before each tick instead of sleeping [s]."""
+    monitor_path: bool = True
+    """Re-check the rest of an executing path against every new occupancy map; a new obstacle on
+    it stops the arm (and replans when the request asks for it)."""
+    path_check_rate_hz: float = 10.0
+    """The rest of the path is re-checked at least this often (and on every new map) [Hz]."""
+    replan_attempts: int = 3
+    """Default plans per execute request after blocks (ExecuteRequest.replan_attempts)."""
+    replan_timeout_s: float = 10.0
+    """Wait for a planner's reply to a replan at most this long [s]."""
+    replan_delay_s: float = 0.5
+    """Pause after a failed replan before the next, so the map can change (MoveIt's replan_delay) [s]."""
 
     def __post_init__(self) -> None:
         require(0 < self.rate_hz <= 2000, f"executor.rate_hz must be in (0, 2000], got {self.rate_hz}")
@@ -81,6 +92,10 @@ class ExecutorConfig:
                 f"executor.busy_wait_s must be in [0, 1 / rate_hz), got {self.busy_wait_s}")
         require(self.max_path_deviation_rad >= 0,
                 f"executor.max_path_deviation_rad must be >= 0, got {self.max_path_deviation_rad}")
+        require(self.path_check_rate_hz > 0, f"executor.path_check_rate_hz must be > 0, got {self.path_check_rate_hz}")
+        require(self.replan_attempts >= 1, f"executor.replan_attempts must be >= 1, got {self.replan_attempts}")
+        require(self.replan_timeout_s > 0, f"executor.replan_timeout_s must be > 0, got {self.replan_timeout_s}")
+        require(self.replan_delay_s >= 0, f"executor.replan_delay_s must be >= 0, got {self.replan_delay_s}")
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ replaced by its world bounding box extended down to the floor (`perceivable_obje
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -137,7 +138,8 @@ class Intruder:
 def intruder_for_trajectory(robot: RobotModel, times_s: npt.ArrayLike, q_rad: npt.ArrayLike, *, link: str,
                             slide_s: float, min_lead_s: float, name: str = "intruder", size_m: float = 0.1,
                             offsets_m: tuple[float, ...] = (0.4, 0.55, 0.7), clearance_m: float = 0.05,
-                            threat_m: float = 0.1) -> Intruder | None:
+                            threat_m: float = 0.1,
+                            reject: Callable[[SceneObject], bool] | None = None) -> Intruder | None:
     """A box that slides onto a timed trajectory as the arm starts, early enough to be avoidable.
 
     The box starts moving at t = 0 and rests after `slide_s` where `link` will pass later.
@@ -153,6 +155,8 @@ def intruder_for_trajectory(robot: RobotModel, times_s: npt.ArrayLike, q_rad: np
         link: The link whose future position the box blocks (e.g. the end effector).
         slide_s: Duration of the slide [s].
         min_lead_s: Smallest acceptable lead [s].
+        reject: Resting places (the box there) this returns True for are skipped, e.g. those
+            that would make the goal unreachable.
 
     Returns:
         The intruder, or None when the trajectory is too short or every start touches the arm.
@@ -170,6 +174,8 @@ def intruder_for_trajectory(robot: RobotModel, times_s: npt.ArrayLike, q_rad: np
         touching = [i for i in range(k + 1) if times[i] >= slide_s and threat.in_collision(states[i])]
         first = times[touching[0]] if touching else times[k]
         if first - slide_s < min_lead_s:
+            continue
+        if reject is not None and reject(box.with_pose(_translation(target))):
             continue
         step = positions[min(k + 1, len(positions) - 1)] - positions[max(k - 1, 0)]
         across = np.array([-step[1], step[0], 0.0]) if np.linalg.norm(step[:2]) > 1e-6 else np.array([0.0, 1.0, 0.0])

@@ -4,8 +4,10 @@ Pure and clock-agnostic: the caller passes `now_s` (any monotonic clock) to ever
 tests drive it with a simulated clock and the service with `time.monotonic()`.
 
 States: idle → executing → idle (last_result succeeded); executing → stopping → stopped
-(a stop request); executing → stopping → error (the watchdog: the arm is braked smoothly,
-then the machine reports `error` with `error_code` / `error_message` until the next start).
+(a stop request); executing → stopping → error (the watchdog, or a blocked path: the arm is
+braked smoothly, then the machine reports `error` with `error_code` / `error_message` until the
+next start); executing → stopping → replanning → executing (a blocked path with replanning on:
+the arm rests while a new path is planned, then continues under the same trajectory id).
 A start while executing or stopping preempts: the new trajectory is blended in from the
 current commanded state, so position, velocity and acceleration stay continuous.
 """
@@ -27,6 +29,8 @@ JOINT_STATE_STALE = "JOINT_STATE_STALE"
 """Status error code: no joint state for longer than the watchdog timeout while moving."""
 TRACKING_ERROR = "TRACKING_ERROR"
 """Status error code: measured position too far from the commanded one while moving."""
+PATH_BLOCKED = "PATH_BLOCKED"
+"""Status error code: a new obstacle blocks the rest of the path (and no replan reached the goal)."""
 
 
 class SampledTrajectory(Protocol):
@@ -58,6 +62,7 @@ class ExecutionStatus:
     last_result: str
     error_code: str
     error_message: str
+    replans: int
 
 
 @dataclass(frozen=True)
@@ -93,6 +98,9 @@ class ExecutionStateMachine:
         self._recent_q: collections.deque[FloatArray] = collections.deque(maxlen=_RECENT_SETPOINTS)
         self._recent_t: collections.deque[float] = collections.deque(maxlen=_RECENT_SETPOINTS)
         self._fault = False
+        self._replan_after_stop = False
+        self.replans = 0
+        """Replanned paths started under the current trajectory id."""
 
     @property
     def busy(self) -> bool:
@@ -109,7 +117,7 @@ class ExecutionStateMachine:
             return None
         return self._trajectory.sample(now_s - self._started_at_s)
 
-    def start(self, trajectory: JointTrajectory, trajectory_id: str, now_s: float) -> bool:
+    def start(self, trajectory: JointTrajectory, trajectory_id: str, now_s: float, *, replanned: bool = False) -> bool:
         """Stream `trajectory` from `now_s`; while moving, blend into it from the commanded state.
 
         Args:
@@ -118,6 +126,7 @@ class ExecutionStateMachine:
                 end of that segment, within the trajectory's own (scaled) limits.
             trajectory_id: Names it in setpoints and status.
             now_s: Current time on the caller's clock [s].
+            replanned: A new path to the same goal after `replanning` (counted in `replans`).
 
         Returns:
             True when it preempted a moving trajectory.
@@ -132,18 +141,26 @@ class ExecutionStateMachine:
         self.error_code = ""
         self.error_message = ""
         self._fault = False
+        self._replan_after_stop = False
+        self.replans = self.replans + 1 if replanned else 0
         return current is not None
 
-    def stop(self, now_s: float, *, emergency: bool = False, scaling: float = 0.5) -> None:
+    def stop(self, now_s: float, *, emergency: bool = False, scaling: float = 0.5, replan: bool = False) -> None:
         """Bring the arm to rest from the commanded state at `now_s`, continuous in p, v and a.
 
         A normal stop brakes all joints synchronised within the running trajectory's scaled
         limits (or the full limits times `scaling` when it carries none); an emergency stop
-        brakes each joint as fast as its full, unscaled limits allow.
+        brakes each joint as fast as its full, unscaled limits allow. With `replan` the
+        machine ends in `replanning` instead of `stopped`; a stop while `replanning` ends it
+        in `stopped`.
         """
+        if self.state == "replanning":
+            self.state, self.last_result = "stopped", "stopped"
+            return
         current = self.commanded_state(now_s)
         if current is None:
             return
+        self._replan_after_stop = replan and not emergency
         running = getattr(self._trajectory, "limits", None)
         if emergency:
             limits, synchronize = self.limits, False
@@ -163,7 +180,12 @@ class ExecutionStateMachine:
         self.state = "stopping"
 
     def fault(self, now_s: float, code: str, message: str) -> None:
-        """Brake smoothly (like a normal stop) and report `error` with `code` once at rest."""
+        """Brake smoothly (like a normal stop) and report `error` with `code` once at rest
+        (at once when `replanning`, where the arm already rests)."""
+        if self.state == "replanning":
+            self.state, self.last_result = "error", "aborted"
+            self.error_code, self.error_message = code, message
+            return
         if not self.busy:
             return
         self.stop(now_s)
@@ -221,6 +243,8 @@ class ExecutionStateMachine:
                 self.state, self.last_result = "idle", "succeeded"
             elif self._fault:
                 self.state, self.last_result = "error", "aborted"
+            elif self._replan_after_stop:
+                self.state = "replanning"
             else:
                 self.state, self.last_result = "stopped", "stopped"
             self._trajectory = None
@@ -232,4 +256,4 @@ class ExecutionStateMachine:
         progress = 1.0 if self._trajectory is None and self.last_result == "succeeded" else (
             elapsed / duration if duration > 0 else 0.0)
         return ExecutionStatus(self.state, self.trajectory_id, progress, elapsed, duration,
-                               self.last_result, self.error_code, self.error_message)
+                               self.last_result, self.error_code, self.error_message, self.replans)

@@ -1,13 +1,15 @@
 """A path guard: does the rest of an executing path run into voxels that appeared after it was planned?
 
-A stand-in for replanning inside the executor: `robonav campaign` stops the arm and plans again
-when the guard says the remaining path is blocked (e.g. an obstacle slid into it). Rebuilding
-FCL's octree from every map costs 0.1-1.7 s on a loaded 2-core machine, far too slow to react,
-so the guard checks the robot's covering spheres (`robot_sphere_model`, which contain the link
-hulls) against voxel centres in a KD-tree: blocked when a sphere comes within robot padding +
-inflation + half a voxel diagonal of a voxel centre, at least as cautious as the planner's
-hull-vs-inflated-octree check. Only voxels new since `start` count: the planner already accepted
-the others.
+The executor stops (and replans) when the guard says the remaining path is blocked, e.g. an
+obstacle slid into it. Rebuilding FCL's octree from every map costs 0.1-1.7 s on a loaded
+2-core machine, far too slow to react, so the check has two stages. First the robot's covering
+spheres (`robot_sphere_model`, which contain the link hulls) against new voxel centres in a
+KD-tree: a state is suspect when a sphere comes within robot padding + inflation + half a voxel
+diagonal of a voxel centre. Spheres are fatter than the links, so a suspect state is then
+confirmed with FCL: the padded link hulls against the suspect voxels as boxes grown by the
+inflation (a superset of the planner's inflated voxels), which is at least as cautious as the
+planner's hull-vs-inflated-octree check and not more. Only voxels new since `start` count: the
+planner already accepted the others.
 """
 
 from __future__ import annotations
@@ -16,8 +18,10 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
+from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.kinematics_batch import LinkKinematics
 from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sphere_model import robot_sphere_model
 from robonav.pipeline.transforms import FloatArray
 
@@ -29,9 +33,12 @@ class PathGuard:
         self._spheres = robot_sphere_model(robot)
         self._kinematics = LinkKinematics.from_robot(robot)
         self._margin_m = padding_m + inflation_m
+        self._inflation_m = inflation_m
+        self._confirm = CollisionWorld(robot, padding_m=padding_m)
         self._resolution_rad = edge_resolution_rad
         self._baseline = np.zeros(0, dtype=np.int64)
         self._tree: cKDTree | None = None
+        self._new_centres = np.zeros((0, 3))
         self._voxel_m = 0.0
 
     def start(self, centres_m: npt.ArrayLike | None, voxel_m: float = 0.0) -> None:
@@ -49,7 +56,8 @@ class PathGuard:
         """Take a new map; returns how many of its voxels are new since `start`."""
         centres = np.asarray(centres_m, dtype=np.float64).reshape(-1, 3)
         new = ~np.isin(_voxel_keys(centres, voxel_m), self._baseline)
-        self._tree = cKDTree(centres[new]) if np.any(new) else None
+        self._new_centres = centres[new]
+        self._tree = cKDTree(self._new_centres) if np.any(new) else None
         self._voxel_m = voxel_m
         return int(new.sum())
 
@@ -76,15 +84,36 @@ class PathGuard:
 
     def remaining_blocked(self, path: npt.ArrayLike, q_now: npt.ArrayLike) -> bool:
         """True when the path from near `q_now` to its end comes within the margin of a new voxel."""
+        return self.first_blocked(path, q_now) is not None
+
+    def first_blocked(self, path: npt.ArrayLike, q_now: npt.ArrayLike, *, confirm: bool = True) -> FloatArray | None:
+        """The first state from near `q_now` to the path's end whose padded links reach a new
+        (inflated) voxel, or None when the rest of the path is clear. Without `confirm`, the
+        first state whose covering spheres come near one (the fast, more cautious stage only)."""
         if self._tree is None:
-            return False
+            return None
         states = self.states_ahead(path, q_now)
         poses = self._kinematics.link_poses_batch(states)[:, self._spheres.link_index]  # (M, S, 4, 4)
         centres = np.einsum("msij,sj->msi", poses[..., :3, :3], self._spheres.centers_link_m) + poses[..., :3, 3]
         # A voxel is a cube around its centre: half its diagonal more covers every point of it.
         reach = self._spheres.radii_m + self._margin_m + 0.5 * np.sqrt(3.0) * self._voxel_m
-        distances, _ = self._tree.query(centres.reshape(-1, 3), distance_upper_bound=float(reach.max()))
-        return bool(np.any(distances.reshape(len(states), -1) < reach[None]))
+        distances, voxels = self._tree.query(centres.reshape(-1, 3), distance_upper_bound=float(reach.max()))
+        near = distances.reshape(len(states), -1) < reach[None]
+        suspects = np.nonzero(np.any(near, axis=1))[0]
+        if len(suspects) == 0:
+            return None
+        if not confirm:
+            return states[suspects[0]]
+        # Every voxel within reach of any sphere of a suspect state, as an inflated box.
+        balls = self._tree.query_ball_point(centres[suspects].reshape(-1, 3), r=float(reach.max()))
+        indices = np.unique(np.fromiter((i for ball in balls for i in ball), dtype=np.int64))
+        side = self._voxel_m + 2.0 * self._inflation_m
+        self._confirm.set_objects([SceneObject(f"v{k}", "box", tuple(self._new_centres[i].tolist()), size_m=(side, side, side))
+                                   for k, i in enumerate(indices)])
+        for m in suspects:
+            if self._confirm.in_collision(states[m]):
+                return states[m]
+        return None
 
 
 def _voxel_keys(centres_m: FloatArray, voxel_m: float) -> npt.NDArray[np.int64]:

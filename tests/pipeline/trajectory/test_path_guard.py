@@ -8,7 +8,7 @@ import pytest
 from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.sim.path_guard import PathGuard
+from robonav.pipeline.trajectory.path_guard import PathGuard
 from robonav.services.config import load_config
 
 CFG = load_config()
@@ -57,15 +57,40 @@ def test_states_ahead_start_near_the_arm_and_end_at_the_goal(guard: PathGuard) -
 
 @pytest.mark.parametrize("seed", range(3))
 def test_the_guard_is_at_least_as_cautious_as_the_planner(guard: PathGuard, seed: int) -> None:
-    """Wherever a box's voxels make the planner's (padded hulls vs box) check fail, the guard blocks too."""
+    """Wherever a box's voxels make the planner's check fail, the guard blocks too. The planner
+    checks the padded hulls against the inflated octree; the inflated voxels of a 10 cm cube fill
+    at most the cube grown by the inflation on every side."""
     rng = np.random.default_rng(seed)
     guard.start(None)
-    world = CollisionWorld(ROBOT, padding_m=CFG.robot.padding_m + CFG.perception.inflation_m)
-    for k in range(6):
+    world = CollisionWorld(ROBOT, padding_m=CFG.robot.padding_m)
+    side = 0.1 + 2 * CFG.perception.inflation_m
+    checked = 0
+    for k in range(12):
         centre = ROBOT.frame_pose(PATH[int(rng.integers(1, 3))], "panda_hand")[:3, 3] + rng.uniform(-0.15, 0.15, 3)
-        world.set_objects([SceneObject("box", "box", tuple(centre), size_m=(0.1, 0.1, 0.1))])
+        world.set_objects([SceneObject("box", "box", tuple(centre), size_m=(side, side, side))])
         if not world.path_valid(PATH, 0.02):
+            checked += 1
             assert blocked(guard, cube_of_voxels(centre), PATH, HOME)
+    assert checked > 0
+
+
+def test_voxels_near_the_fat_spheres_but_clear_of_the_links_do_not_block(guard: PathGuard) -> None:
+    """Covering spheres are fatter than the links; the FCL confirmation keeps that from stopping the arm."""
+    guard.start(None)
+    hand = ROBOT.frame_pose(PATH[2], "panda_hand")
+    # Beside the fingers, in the gap between the open hand's bounding sphere and its hull.
+    beside = hand[:3, 3] + hand[:3, :3] @ np.array([0.0, 0.0, 0.2])
+    world = CollisionWorld(ROBOT, padding_m=CFG.robot.padding_m)
+    side = 0.02 + 2 * CFG.perception.inflation_m
+    spared = 0
+    for offset in np.linspace(0.0, 0.15, 16):
+        voxel = beside + hand[:3, :3] @ np.array([0.0, 0.0, -offset])
+        world.set_objects([SceneObject("v", "box", tuple(voxel), size_m=(side, side, side))])
+        guard.update_map(voxel[None], 0.02)
+        exact = not world.path_valid(guard.states_ahead(PATH, HOME), 0.02)
+        assert guard.remaining_blocked(PATH, HOME) == exact
+        spared += guard.first_blocked(PATH, HOME, confirm=False) is not None and not exact
+    assert spared > 0  # some voxels only the spheres reach
 
 
 def test_only_voxels_new_since_the_plan_count(guard: PathGuard) -> None:
