@@ -176,6 +176,8 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
         "planning_ms": _percentiles([ms for g in goals for ms in g["planning_ms"]]),
         "perception_latency_ms": _percentiles([s * 1e3 for s in monitors.perception_latency_s], 1),
         "replans": sum(g["replans"] for g in goals), "guard_stops": sum(g["guard_stops"] for g in goals),
+        "executor_stops": sum(g.get("executor_stops", 0) for g in goals),
+        "executor_stop_after_frame_ms": _percentiles([s * 1e3 for g in goals for s in g.get("executor_stop_after_frame_s", [])], 1),
         "plan_errors": _count([e for g in goals for e in g["errors"]]),
         "wall_time_s": round(wall_s, 1), "scenes_per_hour": round(3600.0 * len(scenes) / max(wall_s, 1e-9), 1),
     }
@@ -210,7 +212,10 @@ def table(summary: dict[str, Any]) -> str:
                                          f" ({summary['scenes_below_padding']} scenes below)"),
         ("planning ms p50 / p95", f"{summary['planning_ms']['p50']} / {summary['planning_ms']['p95']}"),
         ("perception latency ms p50 / p95", f"{summary['perception_latency_ms']['p50']} / {summary['perception_latency_ms']['p95']}"),
-        ("replans (guard stops)", f"{summary['replans']} ({summary['guard_stops']})"),
+        ("replans (guard stops, executor stops)",
+         f"{summary['replans']} ({summary['guard_stops']}, {summary.get('executor_stops', 0)})"),
+        ("executor stop after frame ms p50 / p95", f"{summary.get('executor_stop_after_frame_ms', {}).get('p50')} / "
+                                                   f"{summary.get('executor_stop_after_frame_ms', {}).get('p95')}"),
         ("wall time", f"{summary['wall_time_s']} s ({summary['scenes_per_hour']} scenes/h)"),
         ("scenes failed / arm resets", f"{summary.get('scenes_failed', 0)} / {summary.get('resets', 0)}"),
     ]

@@ -33,6 +33,8 @@ class Monitors:
         self.contact_begins = 0
         self.contact_examples: list[str] = []
         self.perception_latency_s: list[float] = []
+        self._trajectory_id = ""
+        """Of the newest setpoint: which motion a contact happened in."""
         keys = Keys(cfg.cell)
         self._subs = [
             session.declare_subscriber(keys.setpoint, self._on_setpoint),
@@ -56,6 +58,7 @@ class Monitors:
             bad.append(f"acceleration {np.round(qdd, 3).tolist()}")
         with self._lock:
             self.setpoints += 1
+            self._trajectory_id = sp.trajectory_id
             if bad:
                 self.limit_violations += 1
                 if len(self.violation_examples) < 5:
@@ -67,7 +70,8 @@ class Monitors:
             with self._lock:
                 self.contact_begins += 1
                 if len(self.contact_examples) < 20:
-                    self.contact_examples.append(f"{event.link}|{event.object} {event.distance_m:.4f} m")
+                    self.contact_examples.append(f"{event.link}|{event.object} {event.distance_m:.4f} m "
+                                                 f"in {self._trajectory_id or 'no trajectory'}")
 
     def _on_occupancy(self, sample: zenoh.Sample) -> None:
         arrived = time.time()

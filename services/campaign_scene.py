@@ -22,6 +22,7 @@ from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.sim.goals import intruder_for_trajectory, perceivable_objects, sample_goal
+from robonav.pipeline.trajectory.execution import PATH_BLOCKED
 from robonav.pipeline.trajectory.path_guard import PathGuard
 from robonav.pipeline.sim.scenes import Scene
 from robonav.pipeline.trajectory.timing import time_parameterize
@@ -64,6 +65,10 @@ class GoalRecord:
     guard_map_age_s: float | None = None
     """Age of the map (newest frame in it) when the guard stopped the arm [s]."""
     guard_check_ms: list[float] = field(default_factory=list)
+    executor_stops: int = 0
+    """Times the executor's own path monitor stopped this goal's motion (PATH_BLOCKED)."""
+    executor_stop_after_frame_s: list[float] = field(default_factory=list)
+    """For each: from the newest camera frame in the map that blocked the path to the stop [s]."""
     reached: bool = False
     result: str = ""
     replans: int = 0
@@ -294,6 +299,10 @@ class SceneRunner:
             if finished():
                 status = self.client.status
                 assert status is not None
+                if status.state == "error" and status.error_code == PATH_BLOCKED:
+                    record.executor_stops += 1
+                    if status.blocked_after_frame_s is not None:
+                        record.executor_stop_after_frame_s.append(round(status.blocked_after_frame_s, 3))
                 return status.last_result if status.state == "idle" else status.state
             occupancy = self.client.occupancy
             if occupancy is None or occupancy.seq == seen_seq:
