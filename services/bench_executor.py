@@ -7,7 +7,11 @@ are executed back to back, each preempting the last before it ends, so setpoints
 without a pause. The loop appends `time.monotonic()` right after each setpoint `put`
 returns; the period error is |t[i+1] - t[i] - 1/rate|. This measures the executor's own
 schedule (sleep wake-up jitter, GIL stalls, the cost of `put`), not the delivery latency to
-a subscriber. A missed cycle is a period longer than twice the nominal one.
+a subscriber. A missed cycle is a period longer than twice the nominal one. With
+`--perception-hz R` the real perception service runs in its own process on the same router,
+fed R depth images per second (a pybullet render of the default scene, published by a third
+process), and its maps reach the executor's path monitor, which checks every executing path
+against them: the executor then works as it does next to a live camera.
 
 (b) Duration ratio. Seeded random Panda paths of 3-8 waypoints within the joint limits
 (no collision model) are timed by `time_parameterize` (jerk-limited, corners blended within
@@ -22,18 +26,22 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import multiprocessing
+import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from robonav.pipeline.messages import JointState, Setpoint
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.trajectory.timing import time_parameterize
-from robonav.services.config import RobonavConfig, ZenohConfig, load_config
+from robonav.services.config import RobonavConfig, ZenohConfig, default_config_path, load_config
 
 
 def add_parser(kinds: Any) -> None:  # noqa: ANN401 - argparse's private subparsers type
@@ -44,6 +52,8 @@ def add_parser(kinds: Any) -> None:  # noqa: ANN401 - argparse's private subpars
     parser.add_argument("--rate", type=float, default=None, help="setpoint rate [Hz] (default: executor.rate_hz)")
     parser.add_argument("--paths", type=int, default=20, help="random paths for the duration comparison")
     parser.add_argument("--busy-wait", type=float, default=None, help="executor.busy_wait_s override [s]")
+    parser.add_argument("--perception-hz", type=float, default=0.0,
+                        help="run the perception service in another process, fed depth images at this rate (0: off)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--config", default=None, help="YAML config (default: the packaged one)")
     parser.add_argument("--json", type=Path, default=None, help="write the summary as JSON to this file")
@@ -98,7 +108,38 @@ def duration_ratios(cfg: RobonavConfig, robot: RobotModel, count: int, seed: int
             "max_path_deviation_rad": float(np.max(deviations))}
 
 
-def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: int) -> dict[str, Any]:
+def publish_depth_frames(endpoint: str, config_path: str | None, rate_hz: float, stop: Any) -> None:  # noqa: ANN401 - a multiprocessing Event
+    """Process body: render the default scene's first camera once, publish it at `rate_hz` until `stop`."""
+    from robonav.pipeline.messages import DepthImage
+    from robonav.pipeline.sim.world import SimWorld
+    from robonav.services.common import open_session
+    from robonav.services.keys import Keys
+
+    cfg = load_config(config_path)
+    camera = cfg.cameras[0]
+    with SimWorld(cfg.robot, camera, dataclasses.replace(cfg.sim, follow="kinematic", gravity=False)) as world:
+        world.set_joint_target(cfg.robot.home_position_rad)
+        world.step()
+        frame = world.render_depth()
+        robot_label = next(label for label, name in world.body_labels().items() if name == "robot")
+    # The arm moves and this frame does not: its pixels would turn into obstacles where the arm
+    # no longer is. Without them the map is static, and the monitor checks every path against
+    # it without ever stopping one, so the stream never pauses.
+    depth = np.where(frame.segmentation == robot_label, np.inf, frame.depth_m).astype(np.float32)
+    session = open_session(ZenohConfig(connect=(endpoint,)))
+    key = f"{Keys(cfg.cell).root}/camera/{camera.camera_id}/depth"
+    seq, next_at = 0, time.monotonic()
+    while not stop.is_set():
+        seq += 1
+        session.put(key, DepthImage(stamp=time.time(), camera_id=camera.camera_id, intrinsics=frame.intrinsics,
+                                    depth_m=depth, seq=seq).to_wire())
+        next_at += 1.0 / rate_hz
+        time.sleep(max(0.0, next_at - time.monotonic()))
+    session.close()
+
+
+def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: int, *,
+                  perception_hz: float = 0.0, config_path: str | None = None) -> dict[str, Any]:
     from robonav.services.client import RobonavClient
     from robonav.services.common import open_session
     from robonav.services.executor import ExecutorNode
@@ -130,6 +171,24 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
 
     robot_thread = threading.Thread(target=fake_robot, daemon=True)
     robot_thread.start()
+    helpers: list[Any] = []
+    frames_stop = multiprocessing.get_context("spawn").Event()
+    maps_before = 0
+    if perception_hz > 0:
+        with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as handle:
+            data = yaml.safe_load((Path(config_path) if config_path else default_config_path()).read_text(encoding="utf-8"))
+            data.setdefault("zenoh", {}).update(mode="client", connect=[endpoint], listen=[])
+            data.setdefault("perception", {})["max_update_rate_hz"] = max(perception_hz, 1.0)
+            yaml.safe_dump(data, handle)
+        helpers.append(subprocess.Popen([sys.executable, "-m", "robonav.services.cli", "serve", "perception",
+                                         "--config", handle.name, "--log-level", "WARNING"]))
+        frames = multiprocessing.get_context("spawn").Process(
+            target=publish_depth_frames, args=(endpoint, handle.name, perception_hz, frames_stop), daemon=True)
+        frames.start()
+        helpers.append(frames)
+        if not client.wait_for(lambda: client.occupancy is not None, 60.0):
+            raise RuntimeError("the perception service published no map within 60 s")
+        maps_before = client.occupancy.seq if client.occupancy is not None else 0
     spinner.start()
     rng = np.random.default_rng(seed)
     lower, upper = robot.lower_limits_rad + 0.1, robot.upper_limits_rad - 0.1
@@ -147,7 +206,15 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
             # Preempt 0.3 s before the end so the stream never pauses.
             time.sleep(max(min(duration_s - 0.3, end - time.monotonic()), 0.05))
         times = np.array(node.publish_times_s)
+        maps = (client.occupancy.seq - maps_before) if perception_hz > 0 and client.occupancy is not None else 0
     finally:
+        frames_stop.set()
+        for helper in helpers:
+            if isinstance(helper, subprocess.Popen):
+                helper.terminate()
+                helper.wait(timeout=30)
+            else:
+                helper.join(timeout=10)
         stop.set()
         spinner.join(timeout=5.0)
         robot_stop.set()
@@ -160,7 +227,8 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
     nominal_s = 1.0 / cfg.executor.rate_hz
     periods = np.diff(times)
     error_ms = np.abs(periods - nominal_s) * 1e3
-    return {"setpoints": int(times.size), "executes": preemptions,
+    return {"setpoints": int(times.size), "executes": preemptions, "perception_maps": maps,
+            "perception_maps_hz": maps / seconds,
             "p50": float(np.percentile(error_ms, 50)), "p99": float(np.percentile(error_ms, 99)),
             "max": float(error_ms.max()), "missed": int(np.sum(periods > 2 * nominal_s)),
             "mean_period_ms": float(periods.mean() * 1e3)}
@@ -175,16 +243,20 @@ def main(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, executor=dataclasses.replace(cfg.executor, busy_wait_s=args.busy_wait))
     robot = RobotModel.from_config(cfg.robot)
     ratios = duration_ratios(cfg, robot, args.paths, args.seed)
-    periods = period_errors(cfg, robot, args.seconds, args.seed)
+    periods = period_errors(cfg, robot, args.seconds, args.seed, perception_hz=args.perception_hz, config_path=args.config)
     report = {"rate_hz": cfg.executor.rate_hz, "seconds": args.seconds, "busy_wait_s": cfg.executor.busy_wait_s,
               "period_error_ms": {k: periods[k] for k in ("p50", "p99", "max")}, "missed": periods["missed"],
               "setpoints": periods["setpoints"], "executes": periods["executes"],
               "mean_period_ms": periods["mean_period_ms"],
+              "perception_hz": args.perception_hz, "perception_maps_hz": periods["perception_maps_hz"],
               "duration_ratio_vs_toppra": ratios,
               "method": "period: time.monotonic() after each setpoint put in the executor's spin loop (same process); "
                         "ratio: time_parameterize duration / TOPP-RA (vel+acc, cubic spline) duration"}
     print(f"rate {report['rate_hz']:.0f} Hz for {args.seconds:.0f} s: {periods['setpoints']} setpoints, "
           f"{periods['executes']} executes (each preempting the last)")
+    if args.perception_hz > 0:
+        print(f"perception in another process: fed {args.perception_hz:.0f} Hz, published "
+              f"{periods['perception_maps_hz']:.1f} maps/s to the executor's path monitor")
     print(f"period error [ms]: p50 {periods['p50']:.3f}  p99 {periods['p99']:.3f}  max {periods['max']:.3f}  "
           f"missed (> 2x period) {periods['missed']}")
     print(f"duration vs TOPP-RA over {ratios['paths']} paths: median {ratios['median']:.3f}  max {ratios['max']:.3f}  "

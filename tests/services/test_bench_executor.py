@@ -1,0 +1,22 @@
+"""`robonav bench executor`: the report's fields, with the perception service feeding the path monitor."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+
+def test_the_executor_bench_reports_periods_ratios_and_the_perception_load(tmp_path: Path) -> None:
+    out = tmp_path / "executor.json"
+    run = subprocess.run([sys.executable, "-m", "robonav.services.cli", "bench", "executor", "--seconds", "4",
+                          "--paths", "2", "--perception-hz", "10", "--json", str(out)],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    report = json.loads(out.read_text(encoding="utf-8"))
+    assert report["rate_hz"] == 1000.0 and report["setpoints"] > 1000
+    assert set(report["period_error_ms"]) == {"p50", "p99", "max"} and report["missed"] >= 0
+    assert {"median", "max"} <= set(report["duration_ratio_vs_toppra"])
+    assert report["perception_hz"] == 10.0 and report["perception_maps_hz"] > 0  # maps reached the executor
+    assert "PATH_BLOCKED" not in run.stderr and "blocked" not in run.stderr  # a static map stops nothing
