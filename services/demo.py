@@ -67,7 +67,9 @@ def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, i
                   waypoints=plan.waypoint_count,
                   min_clearance_m=None if plan.min_clearance_m is None else round(plan.min_clearance_m, 4))
     started = time.monotonic()
-    execution = client.execute(plan.path, joint_names=plan.joint_names)
+    # A map that changes under the moving arm (noise, a newly seen surface) should cost a
+    # replan, not the goal.
+    execution = client.execute(plan.path, joint_names=plan.joint_names, replan=True)
     if isinstance(execution, ErrorReply):
         record.update(reached=False, error=f"execute: {execution.code}: {execution.message}")
         return record

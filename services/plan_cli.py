@@ -44,6 +44,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int)
     parser.add_argument("--race", action="store_true", help="ask every planner, take the first valid plan")
     parser.add_argument("--execute", action="store_true", help="execute the path and wait until it finishes")
+    parser.add_argument("--replan", action="store_true",
+                        help="with --execute: when a new obstacle blocks the path, stop and plan again (else stop with PATH_BLOCKED)")
     parser.add_argument("--timeout", type=float, default=30.0, help="per query [s]")
     parser.add_argument("--config", help="YAML config (default: the packaged default); its zenoh and cell keys are used")
     parser.add_argument("--zenoh-config", help="Zenoh JSON5 config (TLS, credentials); overrides zenoh.config_file")
@@ -72,7 +74,7 @@ def plan_and_execute(client: RobonavClient, args: argparse.Namespace) -> tuple[i
                   goal_positions=np.round(plan.path[-1], 5).tolist())
     if not args.execute:
         return EXIT_OK, record
-    execution = client.execute(plan.path, joint_names=plan.joint_names, timeout_s=args.timeout)
+    execution = client.execute(plan.path, joint_names=plan.joint_names, timeout_s=args.timeout, replan=args.replan)
     if isinstance(execution, ErrorReply):
         record.update(ok=False, stage="execute", code=execution.code, message=execution.message, details=execution.details)
         return EXIT_FAILED, record
