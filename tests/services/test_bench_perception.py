@@ -11,7 +11,7 @@ from pathlib import Path
 def test_bench_perception_writes_stage_latency_and_rate_figures(tmp_path: Path) -> None:
     out = tmp_path / "perception.json"
     run = subprocess.run([sys.executable, "-m", "robonav.services.cli", "bench", "perception", "--frames", "12",
-                          "--distinct", "2", "--rate", "10", "--json", str(out)],
+                          "--distinct", "2", "--rate", "10", "--accuracy-frames", "3", "--json", str(out)],
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     report = json.loads(out.read_text())
@@ -23,6 +23,10 @@ def test_bench_perception_writes_stage_latency_and_rate_figures(tmp_path: Path) 
     assert report["core"]["raycast"]["stages"]["raycast"]["p50"] > 0
     assert set(report["core"]["projection"]["clustering_ms"]) == {"components", "dbscan"}
     assert "frame→map latency" in run.stdout
+    accuracy = report["accuracy"]
+    assert accuracy["frames_per_pose"] == 3 and len(accuracy["poses"]) == 3
+    assert all(pose["surface_voxels"] > 1000 for pose in accuracy["poses"])  # the default scene's visible faces
+    assert accuracy["surface_covered_within_one_voxel_min"] > 0.9 and accuracy["on_robot_total"] == 0
 
 
 def test_bench_perception_refuses_bad_arguments() -> None:
