@@ -43,6 +43,10 @@ class CameraConfig:
     rate_hz: float = 5.0
     output: Literal["cloud", "depth", "both"] = "cloud"
     """What the camera publishes: `camera/<id>/cloud` (points), `camera/<id>/depth` (the image) or both."""
+    extrinsics_file: str | None = None
+    """A hand-eye calibration result (`robonav calibrate solve` writes one): perception takes
+    this camera's pose from it, while `position_m`/`quat_xyzw` stay the pose the sim renders
+    from (the truth the calibration estimates). Relative to the config file's folder."""
 
     def __post_init__(self) -> None:
         require(self.width > 0 and self.height > 0, f"camera width/height must be > 0, got {self.width}x{self.height}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -15,6 +16,7 @@ from robonav.pipeline.perception.config import PerceptionConfig
 from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.robot_config import RobotConfig
 from robonav.pipeline.sim.config import SimConfig
+from robonav.pipeline.transforms import FloatArray
 
 DEFAULT_CONFIG_NAME = "default.yaml"
 
@@ -158,4 +160,38 @@ def load_config(path: str | Path | None = None) -> RobonavConfig:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(str(file), "<file>", f"invalid YAML: {exc}") from exc
-    return from_mapping(RobonavConfig, data, source=str(file))
+    return _with_extrinsics(from_mapping(RobonavConfig, data, source=str(file)), file)
+
+
+def _with_extrinsics(cfg: RobonavConfig, file: Path) -> RobonavConfig:
+    """Resolve and check every camera's `extrinsics_file` now, so a bad one fails at load."""
+    from robonav.calibration.extrinsics import read_extrinsics  # calibration's CLI imports this module
+
+    cameras = []
+    for i, camera in enumerate(cfg.cameras):
+        if camera.extrinsics_file is None:
+            cameras.append(camera)
+            continue
+        key = f"cameras[{i}].extrinsics_file"
+        path = Path(camera.extrinsics_file)
+        path = path if path.is_absolute() else file.parent / path
+        if not path.is_file():
+            raise ConfigError(str(file), key, f"{path} does not exist (run `robonav calibrate solve` to write it)")
+        extrinsics = read_extrinsics(path)
+        if extrinsics.camera_id != camera.camera_id:
+            raise ConfigError(str(file), key, f"{path} calibrates camera {extrinsics.camera_id!r}, not {camera.camera_id!r}")
+        if extrinsics.parent_frame != "world":
+            raise ConfigError(str(file), key, f"{path} is an eye-in-hand result (parent_frame {extrinsics.parent_frame!r}); "
+                                              "perception takes fixed cameras only (parent_frame: world)")
+        cameras.append(dataclasses.replace(camera, extrinsics_file=str(path)))
+    return dataclasses.replace(cfg, cameras=tuple(cameras))
+
+
+def perceived_world_from_camera(camera: CameraConfig) -> FloatArray:
+    """(4, 4) the camera pose perception uses: the calibrated one when the camera names an
+    extrinsics file (resolved by `load_config`), else its configured pose."""
+    if camera.extrinsics_file is None:
+        return camera.world_from_camera
+    from robonav.calibration.extrinsics import read_extrinsics
+
+    return read_extrinsics(camera.extrinsics_file).parent_from_camera

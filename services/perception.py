@@ -44,7 +44,7 @@ from robonav.services.common import (
     reply_ok,
     run_service,
 )
-from robonav.services.config import RobonavConfig
+from robonav.services.config import RobonavConfig, perceived_world_from_camera
 from robonav.services.keys import Keys
 
 log = logging.getLogger("robonav.perception")
@@ -109,7 +109,7 @@ class PerceptionNode(Node):
             ProjectionOccupancyMap(cfg.perception) if cfg.perception.clearing == "projection" else OccupancyMap(cfg.perception))
         self.history = JointHistory(self.robot.joint_names)
         self.cameras = {cam.camera_id: cam for cam in cfg.cameras}
-        self.world_from_camera = {cam.camera_id: cam.world_from_camera for cam in cfg.cameras}
+        self.world_from_camera = {cam.camera_id: perceived_world_from_camera(cam) for cam in cfg.cameras}
         self.frames = 0
         self.published = 0
         self.drops = Drops()

@@ -28,7 +28,7 @@ from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.transforms import FloatArray, transform_points
 from robonav.services.client import RobonavClient
 from robonav.services.common import declare_latched_subscriber, open_session, setup_logging, stop_on_signals
-from robonav.services.config import RobonavConfig, load_config
+from robonav.services.config import RobonavConfig, load_config, perceived_world_from_camera
 from robonav.services.keys import Keys
 
 log = logging.getLogger("robonav.view")
@@ -95,7 +95,8 @@ class ViewNode:
         self.options = options
         self.stats = ViewStats()
         self.cameras = {camera.camera_id: camera for camera in cameras_of(cfg)}
-        self._world_from_camera = {cam_id: camera.world_from_camera for cam_id, camera in self.cameras.items()}
+        # Clouds are drawn where perception puts them: at the calibrated pose when there is one.
+        self._world_from_camera = {cam_id: perceived_world_from_camera(camera) for cam_id, camera in self.cameras.items()}
         self.server = viser.ViserServer(host=options.host, port=options.port, verbose=False)
         self.server.gui.configure_theme(show_share_button=False)
         self.server.gui.main_panel.dock_right()  # beside the 3D view, not over it

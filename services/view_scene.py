@@ -24,6 +24,7 @@ from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.link_geometry import resolve_mesh_path
 from robonav.pipeline.robot import RobotModel, resolve_urdf_path
 from robonav.pipeline.transforms import FloatArray, quat_xyzw_from_rotation, rotation_from_quat_xyzw
+from robonav.services.config import perceived_world_from_camera
 from robonav.services.view_clusters import ClusterBox
 
 LAYERS: tuple[str, ...] = ("robot", "ghost", "path", "cloud", "voxels", "clusters", "cameras")
@@ -170,7 +171,7 @@ class SceneLayers:
             self._add_frustum(camera)
 
     def _add_frustum(self, camera: CameraConfig) -> None:
-        world_from_camera = camera.world_from_camera
+        world_from_camera = perceived_world_from_camera(camera)
         # viser frustums use the optical convention too (z forward, x right, y down).
         self.server.scene.add_camera_frustum(
             f"/cameras/{camera.camera_id}", fov=math.radians(camera.vertical_fov_deg), aspect=camera.width / camera.height,

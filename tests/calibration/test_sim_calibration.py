@@ -23,7 +23,7 @@ from robonav.calibration.hand_eye import invert, transform_error
 from robonav.calibration.sim_collect import ee_from_board_mount
 from robonav.calibration.sim_scene import CalibrationScene, camera_intrinsics
 from robonav.pipeline.transforms import look_at_quat_xyzw, make_transform
-from robonav.services.config import load_config
+from robonav.services.config import default_config_path, load_config, perceived_world_from_camera
 
 CONFIG = load_config()
 SMALL = ["--views", "8", "--width", "640", "--height", "480", "--supersample", "2", "--seed", "1"]
@@ -83,6 +83,14 @@ def test_small_sim_calibration_lands_within_its_expected_error(dataset_dir: Path
     t_mm, r_deg = transform_error(extrinsics.parent_from_camera, CONFIG.cameras[0].world_from_camera)
     assert t_mm == pytest.approx(error["translation_mm"], abs=1e-3)
     assert r_deg == pytest.approx(error["rotation_deg"], abs=1e-4)
+
+    # A config naming the file gives perception the calibrated pose; the sim keeps the true one.
+    data = yaml.safe_load(default_config_path().read_text(encoding="utf-8"))
+    data["cameras"][0]["extrinsics_file"] = "cam0.yaml"  # beside the config file
+    (tmp_path / "robonav.yaml").write_text(yaml.safe_dump(data), encoding="utf-8")
+    camera = load_config(tmp_path / "robonav.yaml").cameras[0]
+    np.testing.assert_allclose(perceived_world_from_camera(camera), extrinsics.parent_from_camera, atol=1e-12)
+    np.testing.assert_allclose(camera.world_from_camera, CONFIG.cameras[0].world_from_camera, atol=1e-12)
 
 
 def _edited_copy(source: Path, target: Path, edit) -> Path:  # noqa: ANN001

@@ -6,10 +6,12 @@ import dataclasses
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
+import yaml
 
 from robonav.pipeline.config import ConfigError
-from robonav.services.config import RobonavConfig, default_config_path, load_config
+from robonav.services.config import RobonavConfig, default_config_path, load_config, perceived_world_from_camera
 
 HERE = Path(__file__).resolve().parent.parent / "configs"
 ERROR_CASES = sorted((HERE / "errors").glob("*.yaml"))
@@ -51,3 +53,36 @@ def test_bad_config_names_file_and_key(path: Path) -> None:
 def test_missing_file_is_a_config_error(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="cannot read"):
         load_config(tmp_path / "absent.yaml")
+
+
+def _with_extrinsics_file(tmp_path: Path, extrinsics: dict | None) -> Path:
+    data = yaml.safe_load(default_config_path().read_text(encoding="utf-8"))
+    data["cameras"][0]["extrinsics_file"] = "calibration/cam0.yaml"
+    if extrinsics is not None:
+        (tmp_path / "calibration").mkdir()
+        (tmp_path / "calibration" / "cam0.yaml").write_text(yaml.safe_dump(extrinsics), encoding="utf-8")
+    path = tmp_path / "robonav.yaml"
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    return path
+
+
+GOOD_EXTRINSICS = {"camera_id": "cam0", "parent_frame": "world", "position_m": [1.4, 0.5, 1.0],
+                   "quat_xyzw": [0.0, 0.0, 0.0, 1.0]}
+
+
+def test_a_camera_extrinsics_file_resolves_beside_the_config_and_moves_only_what_perception_sees(tmp_path: Path) -> None:
+    camera = load_config(_with_extrinsics_file(tmp_path, GOOD_EXTRINSICS)).cameras[0]
+    assert Path(camera.extrinsics_file) == tmp_path / "calibration" / "cam0.yaml"
+    np.testing.assert_allclose(perceived_world_from_camera(camera)[:3, 3], [1.4, 0.5, 1.0])
+    np.testing.assert_allclose(camera.world_from_camera, load_config().cameras[0].world_from_camera)
+
+
+@pytest.mark.parametrize(("extrinsics", "pattern"), [
+    (None, "does not exist.*robonav calibrate solve"),
+    ({**GOOD_EXTRINSICS, "camera_id": "cam7"}, "calibrates camera 'cam7', not 'cam0'"),
+    ({**GOOD_EXTRINSICS, "parent_frame": "panda_hand"}, "eye-in-hand"),
+    ({**GOOD_EXTRINSICS, "scale": 2.0}, "scale"),
+], ids=["missing", "other-camera", "eye-in-hand", "unknown-key"])
+def test_a_bad_extrinsics_file_is_a_config_error(tmp_path: Path, extrinsics: dict | None, pattern: str) -> None:
+    with pytest.raises(ConfigError, match=pattern):
+        load_config(_with_extrinsics_file(tmp_path, extrinsics))
