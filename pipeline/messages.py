@@ -373,6 +373,8 @@ class ExecutorStatus(Message):
     blocked_after_frame_s: float | None = None
     """At the last block: from the stamp of the newest camera frame in the map that showed it to
     the stop command [s]."""
+    blocked_stamp: float | None = None
+    """Wall-clock time of that stop command [s]."""
 
     def __post_init__(self) -> None:
         if self.state not in EXECUTOR_STATES:

@@ -178,6 +178,10 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
         "replans": sum(g["replans"] for g in goals), "guard_stops": sum(g["guard_stops"] for g in goals),
         "executor_stops": sum(g.get("executor_stops", 0) for g in goals),
         "executor_stop_after_frame_ms": _percentiles([s * 1e3 for g in goals for s in g.get("executor_stop_after_frame_s", [])], 1),
+        "intruder_rest_to_executor_stop_ms": _percentiles(
+            [g["executor_stop_after_rest_s"] * 1e3 for g in goals if g.get("executor_stop_after_rest_s") is not None], 1),
+        "intruder_rest_to_guard_stop_ms": _percentiles(
+            [g["guard_delay_s"] * 1e3 for g in goals if g.get("guard_delay_s") is not None], 1),
         "plan_errors": _count([e for g in goals for e in g["errors"]]),
         "wall_time_s": round(wall_s, 1), "scenes_per_hour": round(3600.0 * len(scenes) / max(wall_s, 1e-9), 1),
     }

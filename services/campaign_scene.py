@@ -69,6 +69,9 @@ class GoalRecord:
     """Times the executor's own path monitor stopped this goal's motion (PATH_BLOCKED)."""
     executor_stop_after_frame_s: list[float] = field(default_factory=list)
     """For each: from the newest camera frame in the map that blocked the path to the stop [s]."""
+    executor_stop_after_rest_s: float | None = None
+    """Intruder goals: from the box coming to rest to the executor's stop command [s] (at most
+    one frame period more than from the first frame that shows it at rest)."""
     reached: bool = False
     result: str = ""
     replans: int = 0
@@ -303,6 +306,8 @@ class SceneRunner:
                     record.executor_stops += 1
                     if status.blocked_after_frame_s is not None:
                         record.executor_stop_after_frame_s.append(round(status.blocked_after_frame_s, 3))
+                    if record.intruder and record.executor_stop_after_rest_s is None and status.blocked_stamp:
+                        record.executor_stop_after_rest_s = round(status.blocked_stamp - self._intruder_rest_at, 3)
                 return status.last_result if status.state == "idle" else status.state
             occupancy = self.client.occupancy
             if occupancy is None or occupancy.seq == seen_seq:

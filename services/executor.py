@@ -87,6 +87,7 @@ class ExecutorNode(Node):
         self._execution: _Execution | None = None
         self._generation = 0
         self._blocked_after_frame_s: float | None = None
+        self._blocked_stamp: float | None = None
         self._map_lock = threading.Lock()
         self._map_wire: bytes | None = None
         """The newest occupancy message, undecoded: the monitor decodes only what it uses."""
@@ -149,7 +150,7 @@ class ExecutorNode(Node):
                 trajectory_id, path, request.replan,
                 request.replan_attempts or self.cfg.executor.replan_attempts,
                 request.max_velocity_scaling_factor, request.max_acceleration_scaling_factor, self._generation)
-            self._blocked_after_frame_s = None
+            self._blocked_after_frame_s = self._blocked_stamp = None
         log.info("executing %s: %d waypoints, %.2f s%s", trajectory_id, len(path), duration_s,
                  " (preempted the running trajectory)" if preempted else "")
         self._path_pub.put(ExecutorPath(stamp=time.time(), trajectory_id=trajectory_id,
@@ -210,7 +211,8 @@ class ExecutorNode(Node):
         with self._lock:
             if self._execution is not execution or self.machine.state != "executing":
                 return  # preempted or stopped meanwhile
-            delay_s = time.time() - occupancy.stamp
+            self._blocked_stamp = time.time()
+            delay_s = self._blocked_stamp - occupancy.stamp
             self._blocked_after_frame_s = delay_s
             if execution.replan and execution.replans_left > 0:
                 self.machine.stop(time.monotonic(), scaling=self.cfg.executor.acceleration_scaling, replan=True)
@@ -327,6 +329,7 @@ class ExecutorNode(Node):
                 next_status = now + status_period_s
                 published_state = status.state
                 self._status_pub.put(ExecutorStatus(stamp=time.time(), blocked_after_frame_s=self._blocked_after_frame_s,
+                                                    blocked_stamp=self._blocked_stamp,
                                                     **status.__dict__).to_wire())
             next_tick += period_s
             if next_tick < now - period_s:  # fell behind (e.g. the machine stalled): resync, do not burst
