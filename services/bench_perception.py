@@ -88,6 +88,7 @@ def accuracy_run(cfg: RobonavConfig, frames_per_pose: int, seed: int) -> dict[st
     camera = cfg.cameras[0]
     robot = RobotModel.from_config(cfg.robot)
     self_filter = SelfFilter(robot.link_hull_vertices, cfg.perception.self_filter_padding_m)
+    clear_filter = SelfFilter(robot.link_hull_vertices, cfg.perception.self_clear_padding_m)
     noise = dataclasses.replace(cfg.sim.noise, enabled=True)
     home = np.array(cfg.robot.home_position_rad)
     # Home, and the hand out over the table on either side of the pillar, between the camera
@@ -109,7 +110,8 @@ def accuracy_run(cfg: RobonavConfig, frames_per_pose: int, seed: int) -> dict[st
             grid = ProjectionOccupancyMap(cfg.perception)
             for _ in range(frames_per_pose):
                 depth, _ = apply_depth_noise(frame.depth_m, frame.segmentation, frame.intrinsics, noise, rng)
-                grid.integrate_depth(depth, frame.intrinsics, pose, self_filter=self_filter, world_from_link=links)
+                grid.integrate_depth(depth, frame.intrinsics, pose, self_filter=self_filter, world_from_link=links,
+                                     clear_filter=clear_filter)
             found = map_accuracy(grid.occupied_centers_m(), grid.resolution_m, visible_surface_m=visible,
                                  objects=objects, robot_hulls=robot.link_hull_vertices, world_from_link=links)
             results.append({"q_rad": np.round(q, 3).tolist(), **dataclasses.asdict(found)})
@@ -125,6 +127,7 @@ def core_run(cfg: RobonavConfig, frames: list, count: int, clearing: str) -> dic
     pcfg = dataclasses.replace(cfg.perception, clearing=clearing)
     robot = RobotModel.from_config(cfg.robot)
     self_filter = SelfFilter(robot.link_hull_vertices, pcfg.self_filter_padding_m)
+    clear_filter = SelfFilter(robot.link_hull_vertices, pcfg.self_clear_padding_m)
     camera = cfg.cameras[0]
     pose = camera.world_from_camera
     stages: dict[str, list[float]] = {}
@@ -141,7 +144,8 @@ def core_run(cfg: RobonavConfig, frames: list, count: int, clearing: str) -> dic
             t1 = time.perf_counter()
             depth, _ = depth_from_points(points, intrinsics)
             lap = {"to_depth": (time.perf_counter() - t1) * 1e3}
-            update = proj.integrate_depth(depth, intrinsics, pose, self_filter=self_filter, world_from_link=links)
+            update = proj.integrate_depth(depth, intrinsics, pose, self_filter=self_filter, world_from_link=links,
+                                          clear_filter=clear_filter)
             lap.update({k: v for k, v in update.stage_ms.items() if k != "total"})
             t1 = time.perf_counter()
             binary, centres = proj.planning_binary(), proj.occupied_centers_m()
@@ -152,7 +156,7 @@ def core_run(cfg: RobonavConfig, frames: list, count: int, clearing: str) -> dic
             lap = {k: v for k, v in stats.stage_ms.items() if k != "total"}
             t1 = time.perf_counter()
             ray.insert(pts, pose[:3, 3], clear_only_world=clear_only)
-            ray.free_voxels_where(lambda c: ~self_filter.outside_mask(c, links))
+            ray.free_voxels_where(lambda c: ~clear_filter.outside_mask(c, links))
             lap["raycast"] = (time.perf_counter() - t1) * 1e3
             t1 = time.perf_counter()
             binary, centres = ray.planning_binary(), ray.occupied_centers_m()

@@ -105,6 +105,7 @@ class PerceptionNode(Node):
         self.cfg = cfg
         self.robot = RobotModel.from_config(cfg.robot)
         self.self_filter = SelfFilter(self.robot.link_hull_vertices, cfg.perception.self_filter_padding_m)
+        self.clear_filter = SelfFilter(self.robot.link_hull_vertices, cfg.perception.self_clear_padding_m)
         self.map: ProjectionOccupancyMap | OccupancyMap = (
             ProjectionOccupancyMap(cfg.perception) if cfg.perception.clearing == "projection" else OccupancyMap(cfg.perception))
         self.history = JointHistory(self.robot.joint_names)
@@ -203,7 +204,8 @@ class PerceptionNode(Node):
                     self.drops.add("empty", f"camera {cloud.camera_id!r} sent a frame without returns")
                     return False
                 update = self.map.integrate_depth(depth, intrinsics, world_from_camera, self_filter=self.self_filter,
-                                                  world_from_link=world_from_link, labels=labels)
+                                                  world_from_link=world_from_link, labels=labels,
+                                                  clear_filter=self.clear_filter)
                 self.last_stage_ms = {"to_depth": depth_ms, **update.stage_ms}
             elif isinstance(cloud, DepthImage):
                 self.drops.add("unsupported", "depth images need perception.clearing: projection")
@@ -218,7 +220,7 @@ class PerceptionNode(Node):
                 t0 = time.perf_counter()
                 self.map.insert(points_world, world_from_camera[:3, 3], clear_only_world=clear_only_world)
                 # Voxels inside the robot are traces of the arm that its body now hides from every ray.
-                self.map.free_voxels_where(lambda centres: ~self.self_filter.outside_mask(centres, world_from_link))
+                self.map.free_voxels_where(lambda centres: ~self.clear_filter.outside_mask(centres, world_from_link))
                 self.last_stage_ms = {**stats.stage_ms, "raycast": (time.perf_counter() - t0) * 1e3}
         self._newest_stamp = max(self._newest_stamp, cloud.stamp)
         self.frames += 1

@@ -20,6 +20,12 @@ class PerceptionConfig:
     """Points farther than this from the camera are dropped; rays are clipped to it [m]."""
     self_filter_padding_m: float = 0.04
     """Robot link shapes grow by this much before removing the robot's own points [m]."""
+    self_clear_padding_m: float = 0.02
+    """Occupied voxels whose centre lies inside the robot's links grown by this much are freed
+    every frame (the robot is there now; no ray can clear what its body hides) [m]. Kept below
+    the planner's robot padding + inflation: a planned motion never comes this close to a
+    mapped obstacle, so passing one does not erase it (as a larger radius would, leaving a
+    hole the next plan runs through)."""
     inflation_m: float = 0.02
     """Occupied voxels are dilated by this distance in the published map [m]."""
     fill_below_surfaces: bool = False
@@ -80,6 +86,8 @@ class PerceptionConfig:
                     f"perception.workspace_min_m[{i}]={self.workspace_min_m[i]} must be < workspace_max_m[{i}]={self.workspace_max_m[i]}")
         require(self.max_range_m > 0, f"perception.max_range_m must be > 0, got {self.max_range_m}")
         require(self.self_filter_padding_m >= 0, f"perception.self_filter_padding_m must be >= 0, got {self.self_filter_padding_m}")
+        require(0 <= self.self_clear_padding_m <= self.self_filter_padding_m,
+                f"perception.self_clear_padding_m must be in [0, self_filter_padding_m], got {self.self_clear_padding_m}")
         require(self.inflation_m >= 0, f"perception.inflation_m must be >= 0, got {self.inflation_m}")
         require(self.max_update_rate_hz > 0, f"perception.max_update_rate_hz must be > 0, got {self.max_update_rate_hz}")
         require(0.5 < self.prob_hit < 1.0, f"perception.prob_hit must be in (0.5, 1), got {self.prob_hit}")

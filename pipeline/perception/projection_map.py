@@ -125,6 +125,7 @@ class ProjectionOccupancyMap:
         self_filter: SelfFilter | None = None,
         world_from_link: Mapping[str, npt.ArrayLike] | None = None,
         labels: npt.ArrayLike | None = None,
+        clear_filter: SelfFilter | None = None,
     ) -> FrameUpdate:
         """Fuse one depth image: its returns mark voxels occupied, what it sees past turns free.
 
@@ -139,6 +140,8 @@ class ProjectionOccupancyMap:
                 `self_filter`).
             labels: Optional (H, W) integer label per pixel (e.g. a simulator's segmentation);
                 each hit voxel remembers the last label seen in it.
+            clear_filter: The robot model that frees occupied voxels inside it (see
+                `PerceptionConfig.self_clear_padding_m`); default `self_filter`.
 
         Raises:
             ValueError: malformed depth, labels or pose, or `self_filter` without `world_from_link`.
@@ -202,10 +205,11 @@ class ProjectionOccupancyMap:
             if occupied.size:
                 # Only voxels in the robot's bounding box can be inside it: a cheap cut of a
                 # map that is mostly table and objects.
-                lower, upper = self_filter.bounds_m(world_from_link)
+                clearing = clear_filter or self_filter
+                lower, upper = clearing.bounds_m(world_from_link)
                 centres = self.centres_m(occupied)
                 near = np.flatnonzero(np.all((centres >= lower) & (centres <= upper), axis=1))
-                inside = ~self_filter.outside_mask(centres[near], world_from_link)
+                inside = ~clearing.outside_mask(centres[near], world_from_link)
                 robot_voxels = occupied[near[inside]]
                 robot_cleared = int(robot_voxels.size)
         filled = np.empty(0, dtype=np.int64)

@@ -204,6 +204,31 @@ def test_planning_binary_holds_the_inflated_voxels(robot: RobotModel, self_filte
     assert not occupied(np.array([-0.5, -0.5, 1.0]))
 
 
+def test_the_arm_passing_close_to_an_obstacle_does_not_erase_it(robot: RobotModel) -> None:
+    """A box 2.1 cm from the hand puts voxel centres between the clearing radius (2 cm) and the
+    return filter's (4 cm): it must stay in the map while the arm is beside it. (A planned
+    motion keeps voxel centres about 4 cm away: robot padding + inflation + half a voxel.)"""
+    returns = SelfFilter(robot.link_hull_vertices, 0.04)
+    box = SceneObject("box", "box", (0.307, 0.155, 0.59), size_m=(0.1, 0.06, 0.1))  # 2.1 cm from the hand at home
+    away = HOME + np.array([-1.2, 0, 0, 0, 0, 0, 0])
+    kept = {}
+    for clear_padding in (0.02, 0.04):
+        clearing = SelfFilter(robot.link_hull_vertices, clear_padding)
+        m = ProjectionOccupancyMap(dataclasses.replace(CONFIG, fill_below_surfaces=True))  # fills the near side
+        for q in (away, away, HOME, HOME):
+            m.integrate_depth(*_frame_args(render(TABLE, box, q=q)), self_filter=returns, world_from_link=robot.link_poses(q),
+                              clear_filter=clearing)
+            if q is away:
+                before = voxels_inside(m, box)
+        kept[clear_padding] = voxels_inside(m, box) / before
+    assert kept[0.02] == 1.0
+    assert kept[0.04] < 0.95  # the old radius erased the near side: the test can tell
+
+
+def _frame_args(frame) -> tuple:  # noqa: ANN001
+    return frame.depth_m, frame.intrinsics, frame.world_from_camera
+
+
 def table_columns_missing(m: ProjectionOccupancyMap, table: SceneObject = TABLE) -> int:
     """Columns over the table top with no occupied voxel at or above its top layer."""
     centres = m.occupied_centers_m()
