@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.messages import JointState, Setpoint
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.trajectory.timing import time_parameterize
@@ -52,6 +53,8 @@ def add_parser(kinds: Any) -> None:  # noqa: ANN401 - argparse's private subpars
     parser.add_argument("--rate", type=float, default=None, help="setpoint rate [Hz] (default: executor.rate_hz)")
     parser.add_argument("--paths", type=int, default=20, help="random paths for the duration comparison")
     parser.add_argument("--busy-wait", type=float, default=None, help="executor.busy_wait_s override [s]")
+    parser.add_argument("--realtime-priority", type=int, default=None,
+                        help="executor.realtime_priority override (SCHED_FIFO 1-99; needs CAP_SYS_NICE)")
     parser.add_argument("--perception-hz", type=float, default=0.0,
                         help="run the perception service in another process, fed depth images at this rate (0: off)")
     parser.add_argument("--seed", type=int, default=0)
@@ -195,11 +198,19 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
     preemptions = 0
     try:
         client.wait_for(lambda: node._measured_q is not None, 5.0)
+        # With perception on, the path monitor checks every path against the scene's map: paths
+        # through the table would be stopped (rightly), pausing the stream, so draw clear ones.
+        scene = CollisionWorld(robot, padding_m=0.08) if perception_hz > 0 else None
+        if scene is not None:
+            scene.set_objects(list(cfg.sim.objects))
         end = time.monotonic() + seconds
         while time.monotonic() < end:
             start = position[0].copy()
-            goal = np.clip(start + rng.uniform(-0.6, 0.6, robot.dof), lower, upper)
-            middle = np.clip((start + goal) / 2 + rng.uniform(-0.2, 0.2, robot.dof), lower, upper)
+            for _ in range(100):
+                goal = np.clip(start + rng.uniform(-0.6, 0.6, robot.dof), lower, upper)
+                middle = np.clip((start + goal) / 2 + rng.uniform(-0.2, 0.2, robot.dof), lower, upper)
+                if scene is None or scene.path_valid(np.array([start, middle, goal]), 0.05):
+                    break
             reply = client.execute(np.array([start, middle, goal]))
             duration_s = getattr(reply, "duration_s", 0.5)
             preemptions += 1
@@ -231,6 +242,7 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
             "perception_maps_hz": maps / seconds,
             "p50": float(np.percentile(error_ms, 50)), "p99": float(np.percentile(error_ms, 99)),
             "max": float(error_ms.max()), "missed": int(np.sum(periods > 2 * nominal_s)),
+            "max_at_s": float(times[int(np.argmax(error_ms))] - times[0]),
             "mean_period_ms": float(periods.mean() * 1e3)}
 
 
@@ -241,12 +253,15 @@ def main(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, executor=dataclasses.replace(cfg.executor, rate_hz=args.rate))
     if args.busy_wait is not None:
         cfg = dataclasses.replace(cfg, executor=dataclasses.replace(cfg.executor, busy_wait_s=args.busy_wait))
+    if args.realtime_priority is not None:
+        cfg = dataclasses.replace(cfg, executor=dataclasses.replace(cfg.executor, realtime_priority=args.realtime_priority))
     robot = RobotModel.from_config(cfg.robot)
     ratios = duration_ratios(cfg, robot, args.paths, args.seed)
     periods = period_errors(cfg, robot, args.seconds, args.seed, perception_hz=args.perception_hz, config_path=args.config)
     report = {"rate_hz": cfg.executor.rate_hz, "seconds": args.seconds, "busy_wait_s": cfg.executor.busy_wait_s,
+              "realtime_priority": cfg.executor.realtime_priority,
               "period_error_ms": {k: periods[k] for k in ("p50", "p99", "max")}, "missed": periods["missed"],
-              "setpoints": periods["setpoints"], "executes": periods["executes"],
+              "setpoints": periods["setpoints"], "executes": periods["executes"], "max_at_s": periods["max_at_s"],
               "mean_period_ms": periods["mean_period_ms"],
               "perception_hz": args.perception_hz, "perception_maps_hz": periods["perception_maps_hz"],
               "duration_ratio_vs_toppra": ratios,

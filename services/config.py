@@ -68,6 +68,9 @@ class ExecutorConfig:
     """Watchdog: how far back setpoints count for the tracking error (the loop's latency) [s]."""
     busy_wait_s: float = 0.0
     """The streaming loop polls the clock for this long before each tick instead of sleeping [s]."""
+    realtime_priority: int = 0
+    """SCHED_FIFO priority (1-99) of the streaming loop's thread; 0 leaves it at normal priority.
+    Needs CAP_SYS_NICE; without it the executor logs a warning and runs normally."""
     monitor_path: bool = True
     """Re-check the rest of an executing path against every new occupancy map; a new obstacle on
     it stops the arm (and replans when the request asks for it)."""
@@ -94,6 +97,7 @@ class ExecutorConfig:
                 f"executor.busy_wait_s must be in [0, 1 / rate_hz), got {self.busy_wait_s}")
         require(self.max_path_deviation_rad >= 0,
                 f"executor.max_path_deviation_rad must be >= 0, got {self.max_path_deviation_rad}")
+        require(0 <= self.realtime_priority <= 99, f"executor.realtime_priority must be in [0, 99], got {self.realtime_priority}")
         require(self.path_check_rate_hz > 0, f"executor.path_check_rate_hz must be > 0, got {self.path_check_rate_hz}")
         require(self.replan_attempts >= 1, f"executor.replan_attempts must be >= 1, got {self.replan_attempts}")
         require(self.replan_timeout_s > 0, f"executor.replan_timeout_s must be > 0, got {self.replan_timeout_s}")

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
+import sys
 import threading
 import time
 import uuid
@@ -37,6 +39,9 @@ from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
 
 log = logging.getLogger("robonav.executor")
+
+REALTIME_SWITCH_INTERVAL_S = 2e-4
+"""Python's thread switch interval in a real-time executor process [s]."""
 
 
 @dataclass(frozen=True)
@@ -74,10 +79,14 @@ class ExecutorNode(Node):
         self.publish_times_s: list[float] | None = None
         """When a list, spin appends time.monotonic() after each setpoint put (for `robonav bench executor`)."""
         keys = Keys(cfg.cell)
-        # Setpoints and status must not be dropped under load (Zenoh's default for puts): a
-        # lost final setpoint leaves the arm short of the goal while the status says done.
-        self._setpoint_pub = session.declare_publisher(keys.setpoint, congestion_control=zenoh.CongestionControl.BLOCK,
+        # A setpoint in motion is superseded a period later: under congestion it is dropped
+        # rather than blocking the 1 kHz loop on a slow subscriber (a blocking put stalled the
+        # loop for up to 5 ms). The last setpoint of a motion (at rest) and status must arrive:
+        # a lost one leaves the arm short of the goal while the status says done.
+        self._setpoint_pub = session.declare_publisher(keys.setpoint, congestion_control=zenoh.CongestionControl.DROP,
                                                        priority=zenoh.Priority.REAL_TIME, express=True)
+        self._final_setpoint_pub = session.declare_publisher(keys.setpoint, congestion_control=zenoh.CongestionControl.BLOCK,
+                                                             priority=zenoh.Priority.REAL_TIME, express=True)
         self._status_pub = session.declare_publisher(keys.status, congestion_control=zenoh.CongestionControl.BLOCK)
         # Latched, so a viewer that starts late still sees the last path (plan replies go only to the asker).
         self._path_pub = declare_latched_publisher(session, keys.executor_path)
@@ -94,6 +103,13 @@ class ExecutorNode(Node):
         self._map_arrived = threading.Event()
         self._guard = PathGuard(self.robot, padding_m=cfg.robot.padding_m, inflation_m=cfg.perception.inflation_m,
                                 edge_resolution_rad=cfg.planner.edge_resolution_rad)
+        if cfg.executor.monitor_path:
+            # Compile the guard's kernels now: compiling on the first map would hold the GIL,
+            # and stall the setpoint loop, for a few hundred milliseconds.
+            home = np.asarray(self.robot.home_position_rad, dtype=float)
+            self._guard.start(None)
+            self._guard.update_map(home[None, :3] * 0.0 + 10.0, 0.02)
+            self._guard.first_blocked(np.array([home, home]), home)
         self._map_sub = (declare_latched_subscriber(session, keys.occupancy, self.on_occupancy)
                          if cfg.executor.monitor_path else None)
         self._monitor_stop = threading.Event()
@@ -195,11 +211,12 @@ class ExecutorNode(Node):
                     self._replan(execution)
                 elif state == "executing" and commanded is not None:
                     if baseline_generation != execution.generation:
-                        # The path was planned on (about) the newest map: only voxels new since count.
-                        self._guard.start(None if occupancy is None else occupancy.occupied_centers_m,
-                                          0.0 if occupancy is None else occupancy.resolution_m)
-                        baseline_generation = execution.generation
-                    elif occupancy is not None:
+                        # The path was planned on (about) the newest map: only voxels new since
+                        # count. Without a map yet, the first one is the baseline.
+                        if occupancy is not None:
+                            self._guard.start(occupancy.occupied_centers_m, occupancy.resolution_m)
+                            baseline_generation = execution.generation
+                    else:
                         self._check_rest_of_path(execution, commanded[0], occupancy)
             except Exception:  # noqa: BLE001 - the monitor must outlive any one bad check
                 log.exception("path monitor: check failed")
@@ -302,6 +319,7 @@ class ExecutorNode(Node):
 
     def spin(self, stop: threading.Event) -> None:
         """Stream setpoints on an absolute schedule so periods do not drift."""
+        _real_time_priority(self.cfg.executor.realtime_priority)
         period_s = 1.0 / self.cfg.executor.rate_hz
         status_period_s = 1.0 / self.cfg.executor.status_rate_hz
         names = self.robot.joint_names
@@ -313,11 +331,12 @@ class ExecutorNode(Node):
             with self._lock:
                 tripped = self.machine.check_watchdog(now, self._measured_q, now - self._measured_at_s, self._watchdog)
                 sample = self.machine.tick(now)
+                final = not self.machine.busy  # this sample ended a motion: it is the rest state
                 # A state change is published at once, not at the next status period.
                 due = now >= next_status or self.machine.state != published_state
                 status = self.machine.status(now) if due else None
             if sample is not None:
-                self._setpoint_pub.put(Setpoint(
+                (self._final_setpoint_pub if final else self._setpoint_pub).put(Setpoint(
                     stamp=time.time(), trajectory_id=sample.trajectory_id, names=names,
                     position=sample.position, velocity=sample.velocity, acceleration=sample.acceleration,
                 ).to_wire())
@@ -355,8 +374,30 @@ class ExecutorNode(Node):
             self._map_sub.undeclare()
         self._sub.undeclare()
         self._setpoint_pub.undeclare()
+        self._final_setpoint_pub.undeclare()
         self._status_pub.undeclare()
         self._path_pub.undeclare()
+
+
+def _real_time_priority(priority: int) -> None:
+    """Run the calling thread (the streaming loop) under SCHED_FIFO at `priority` (0: leave it).
+
+    What robot control loops do (ros2_control, Franka's libfranka): the scheduler then never
+    makes the loop wait for ordinary threads and processes, which on a busy 2-core machine
+    otherwise costs it whole milliseconds. It needs CAP_SYS_NICE (root, or
+    `docker run --cap-add SYS_NICE`); without it the loop runs at normal priority.
+    """
+    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
+        return
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))  # 0: this thread on Linux
+        # The loop also needs the GIL back quickly: other threads (queries, the path monitor)
+        # otherwise keep it for up to Python's default 5 ms switch interval.
+        sys.setswitchinterval(min(sys.getswitchinterval(), REALTIME_SWITCH_INTERVAL_S))
+        log.info("setpoint loop runs under SCHED_FIFO priority %d", priority)
+    except (PermissionError, OSError) as exc:
+        log.warning("setpoint loop stays at normal priority: SCHED_FIFO refused (%s); "
+                    "grant CAP_SYS_NICE or set executor.realtime_priority: 0", exc)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -104,13 +104,15 @@ class PathGuard:
             return None
         if not confirm:
             return states[suspects[0]]
-        # Every voxel within reach of any sphere of a suspect state, as an inflated box.
-        balls = self._tree.query_ball_point(centres[suspects].reshape(-1, 3), r=float(reach.max()))
-        indices = np.unique(np.fromiter((i for ball in balls for i in ball), dtype=np.int64))
+        # State by state, in path order: the voxels within reach of that state's suspect
+        # spheres, as inflated boxes, against the padded links. Few voxels per state, so the
+        # work stays small however many voxels are new.
         side = self._voxel_m + 2.0 * self._inflation_m
-        self._confirm.set_objects([SceneObject(f"v{k}", "box", tuple(self._new_centres[i].tolist()), size_m=(side, side, side))
-                                   for k, i in enumerate(indices)])
         for m in suspects:
+            balls = self._tree.query_ball_point(centres[m][near[m]], r=float(reach.max()))
+            indices = np.unique(np.fromiter((i for ball in balls for i in ball), dtype=np.int64))
+            self._confirm.set_objects([SceneObject(f"v{k}", "box", tuple(self._new_centres[i].tolist()),
+                                                   size_m=(side, side, side)) for k, i in enumerate(indices)])
             if self._confirm.in_collision(states[m]):
                 return states[m]
         return None
