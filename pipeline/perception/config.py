@@ -35,6 +35,10 @@ class PerceptionConfig:
     the planner treats as free. Assuming what is seen rests on solid matter (true for objects
     on a table or floor; conservative under overhangs) fills objects' unseen interiors and
     back halves. Rays that later pass through the filled space clear it as usual."""
+    depth_edge_jump_m: float = 0.02
+    """Jump edge filter: both pixels of a depth jump larger than this (or than 4 pixel
+    footprints, for surfaces at grazing angles) between neighbours are dropped, and with them
+    the flying pixels a real camera puts between the surfaces [m]; 0 turns it off."""
     complete_support: bool = True
     """Complete the supporting surface (table top or floor) where nothing has been seen of it.
 
@@ -43,7 +47,9 @@ class PerceptionConfig:
     support layer (where most columns of the map end, `support_min_columns` of them at least)
     is taken to be flat and whole across the smallest rectangle that holds what was seen of
     it: its unknown cells there become occupied, except inside the robot. A cell a camera
-    later sees through is cleared as usual and stays clear (e.g. a real gap between tables)."""
+    later sees through is cleared as usual and stays clear (e.g. a real gap between tables).
+    The floor (the workspace's two bottom voxel layers) is never completed: the robot stands
+    on it."""
     support_min_columns: int = 200
     """A horizontal layer is a supporting surface when at least this many columns end in it."""
     max_update_rate_hz: float = 30.0
@@ -94,6 +100,7 @@ class PerceptionConfig:
         require(0.0 < self.prob_miss < 0.5, f"perception.prob_miss must be in (0, 0.5), got {self.prob_miss}")
         require(self.clustering in ("components", "dbscan"),
                 f"perception.clustering must be 'components' or 'dbscan', got {self.clustering!r}")
+        require(self.depth_edge_jump_m >= 0, f"perception.depth_edge_jump_m must be >= 0, got {self.depth_edge_jump_m}")
         require(self.support_min_columns >= 1,
                 f"perception.support_min_columns must be >= 1, got {self.support_min_columns}")
         require(self.cluster_min_voxels >= 1, f"perception.cluster_min_voxels must be >= 1, got {self.cluster_min_voxels}")

@@ -29,6 +29,7 @@ from robonav.pipeline.camera import CameraIntrinsics
 from robonav.pipeline.perception import voxel_kernels as kernels
 from robonav.pipeline.perception.clusters import support_layer
 from robonav.pipeline.perception.config import PerceptionConfig
+from robonav.pipeline.perception.depth import remove_depth_edges
 from robonav.pipeline.perception.filtering import BoolArray, FloatArray, validate_transform
 from robonav.pipeline.perception.occupancy import inflation_offsets
 from robonav.pipeline.perception.self_filter import SelfFilter
@@ -66,10 +67,29 @@ class FrameUpdate:
     """Occupied voxels that got free-space evidence."""
     robot_cleared: int
     """Occupied voxels freed because the robot's own body is there now."""
+    edge_pixels: int
+    """Pixels the jump edge filter dropped (flying pixels and both sides of depth edges)."""
     newly_occupied: int
     newly_freed: int
     stage_ms: dict[str, float] = field(default_factory=dict)
-    """Wall time per stage [ms]: hits, outliers, self_filter, clearing, update, inflation, total."""
+    """Wall time per stage [ms]: edges, hits, outliers, self_filter, clearing, update, inflation, total."""
+
+
+_FLOOR_LAYERS = 2
+"""Voxel layers at the bottom of the workspace that support completion leaves alone."""
+
+
+def _main_regions(columns: IntArray, min_share: float = 0.05, min_cells: int = 20) -> IntArray:
+    """The columns of the support's large 8-connected regions: a stray column at table height
+    (a flying pixel, a box top) would otherwise stretch the rectangle across the robot."""
+    origin = columns.min(axis=0)
+    cells = columns - origin
+    grid = np.zeros(tuple(cells.max(axis=0) + 1), dtype=np.uint8)
+    grid[cells[:, 0], cells[:, 1]] = 1
+    _, label_grid, stats, _ = cv2.connectedComponentsWithStats(grid, connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    keep = np.flatnonzero(areas >= max(min_cells, min_share * areas.max())) + 1
+    return columns[np.isin(label_grid[cells[:, 0], cells[:, 1]], keep)]
 
 
 class ProjectionOccupancyMap:
@@ -153,7 +173,7 @@ class ProjectionOccupancyMap:
                              f"got shape {depth.shape}")
         if not np.issubdtype(depth.dtype, np.floating):
             raise ValueError(f"depth_m must hold floats (metres), got dtype {depth.dtype}")
-        depth = np.ascontiguousarray(depth, dtype=np.float32)
+        depth = np.array(depth, dtype=np.float32, order="C")  # a copy: the edge filter writes into it
         label_image = np.zeros((0, 0), dtype=np.int32)
         if labels is not None:
             label_image = np.ascontiguousarray(labels)
@@ -172,6 +192,9 @@ class ProjectionOccupancyMap:
             stage_ms[stage] = (now - last) * 1e3
             last = now
 
+        edge_pixels = remove_depth_edges(depth, intrinsics.fx, min_jump_m=cfg.depth_edge_jump_m) \
+            if cfg.depth_edge_jump_m > 0 else 0
+        lap("edges")
         self._frame_id += 1
         if self._frame_id == np.iinfo(np.int32).max:  # marks would repeat: start over
             self._mark[:] = 0
@@ -251,7 +274,7 @@ class ProjectionOccupancyMap:
         return FrameUpdate(
             sampled=int(counts[0]), no_return=int(counts[1]), out_of_range=int(counts[2]), cropped=int(counts[3]),
             hit_voxels=int(hits.size), outliers=outliers, self_filtered=self_filtered, seen_through=int(misses.size),
-            robot_cleared=robot_cleared, newly_occupied=int(now_occupied.size), newly_freed=int(np.unique(freed).size),
+            robot_cleared=robot_cleared, edge_pixels=edge_pixels, newly_occupied=int(now_occupied.size), newly_freed=int(np.unique(freed).size),
             stage_ms=stage_ms,
         )
 
@@ -260,10 +283,14 @@ class ProjectionOccupancyMap:
         """Mark the support layer's never-seen cells inside its seen extent occupied (see
         `PerceptionConfig.complete_support`); returns their flat indices."""
         occupied = self.occupied_indices()
-        found = support_layer(self.ijk(occupied), self._config.support_min_columns)
+        ijk = self.ijk(occupied)
+        # Not the floor (the workspace's bottom layers): the robot stands on it, and nothing
+        # can pass below the workspace anyway.
+        found = support_layer(ijk[ijk[:, 2] >= _FLOOR_LAYERS], self._config.support_min_columns)
         if found is None:
             return np.empty(0, dtype=np.int64)
         layer, columns, _ = found
+        columns = _main_regions(columns)
         # The smallest rotated rectangle around the seen part: a table top at any yaw (OpenCV's
         # rotating calipers; a convex hull would cut the corner off a table whose corner is in shadow).
         (cx, cy), (w, h), angle_deg = cv2.minAreaRect(columns.astype(np.float32))

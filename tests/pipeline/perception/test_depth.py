@@ -128,3 +128,20 @@ def test_linearisation_known_values_and_background() -> None:
     assert depth[0, 1] == math.inf
     assert depth[1, 0] == math.inf  # the tiny renderer clears to 1 - 1 ulp
     assert depth[1, 1] == pytest.approx(0.9, abs=1e-5)
+
+
+def test_the_jump_edge_filter_drops_flying_pixels_and_keeps_surfaces() -> None:
+    from robonav.pipeline.perception.depth import remove_depth_edges
+
+    fx = 554.0
+    rows, cols = np.mgrid[0:120, 0:160]
+    depth = (1.5 + 0.004 * rows).astype(np.float32)  # a floor seen at a grazing angle: 4 mm per row
+    depth[40:80, 60:100] = 1.0  # a box in front of it
+    depth[39, 60:100] = 1.25  # flying pixels along its top edge, between box and floor
+    depth[0:5, 0:5] = np.inf  # no return: not an edge
+    dropped = remove_depth_edges(depth, fx, min_jump_m=0.02)
+    finite = depth[np.isfinite(depth)]
+    assert not np.any((finite > 1.01) & (finite < 1.4))  # no pixel left between the surfaces
+    assert np.isfinite(depth[45:75, 65:95]).all() and np.isfinite(depth[90:, :]).all()  # box and floor kept
+    assert 150 <= dropped <= 2 * (40 + 40) * 2 + 40 + 10  # a band one pixel wide each side of the box's outline
+    assert np.isinf(depth[0:5, 0:5]).all() and np.isfinite(depth[6:30, 6:30]).all()  # inf is no edge

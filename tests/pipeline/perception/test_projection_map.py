@@ -258,6 +258,46 @@ def test_the_table_is_whole_in_the_shadow_of_a_tall_object(robot: RobotModel, se
     assert np.all(self_filter.outside_mask(centres, robot.link_poses(HOME)))  # nor inside the arm
 
 
+def test_a_stray_column_at_table_height_does_not_stretch_the_support_over_the_robot(
+        robot: RobotModel, self_filter: SelfFilter) -> None:
+    """A flying pixel or a small object top at the table's height, far from the table (here a
+    post beside the robot's base), must not pull the completed rectangle across the robot."""
+    post = SceneObject("post", "box", (-0.3, -0.3, 0.1075), size_m=(0.04, 0.04, 0.215))  # top in the table top layer
+    frame = render(TABLE, post)
+    m = ProjectionOccupancyMap(CONFIG)
+    for _ in range(2):
+        integrate(m, frame, robot, self_filter)
+    centres = m.occupied_centers_m()
+    top = TABLE.position_m[2] + TABLE.size_m[2] / 2
+    layer = centres[np.abs(centres[:, 2] - (top + RES / 2)) < RES / 2]
+    off_table = layer[np.any(np.abs(layer[:, :2] - TABLE.position_m[:2]) > np.asarray(TABLE.size_m[:2]) / 2 + RES, axis=1)]
+    assert len(off_table) <= 4, off_table  # the post's own top, nothing between it and the table
+
+
+def test_flying_pixels_at_depth_edges_leave_no_voxels_in_free_space(robot: RobotModel, self_filter: SelfFilter) -> None:
+    """The sim's flying pixels (at every depth edge, the arm's silhouette included) land
+    between surfaces; the jump edge filter must keep them out of the map."""
+    from robonav.pipeline.perception.accuracy import map_accuracy
+    from robonav.pipeline.sim.noise import DepthNoiseConfig, apply_depth_noise
+
+    frame = render(TABLE, BOX, CAN)
+    noise = DepthNoiseConfig(enabled=True, axial_sigma_m=0.0, axial_sigma_per_m2=0.0, dropout_probability=0.0,
+                             flying_pixel_probability=1.0)
+    spurious = {}
+    for jump_m in (0.0, 0.02):
+        m = ProjectionOccupancyMap(dataclasses.replace(CONFIG, depth_edge_jump_m=jump_m))
+        rng = np.random.default_rng(0)
+        for _ in range(3):
+            depth, labels = apply_depth_noise(frame.depth_m, frame.segmentation, frame.intrinsics, noise, rng)
+            m.integrate_depth(depth, frame.intrinsics, frame.world_from_camera, self_filter=self_filter,
+                              world_from_link=robot.link_poses(HOME), labels=labels)
+        found = map_accuracy(m.occupied_centers_m(), RES, visible_surface_m=np.zeros((0, 3)), objects=[TABLE, BOX, CAN],
+                             robot_hulls=robot.link_hull_vertices, world_from_link=robot.link_poses(HOME))
+        spurious[jump_m] = found.spurious
+    assert spurious[0.0] > 3, spurious  # without the filter the flying pixels do land in free space...
+    assert spurious[0.02] == 0, spurious  # ...with it, none
+
+
 def test_a_gap_between_tables_that_a_camera_sees_through_stays_free(robot: RobotModel, self_filter: SelfFilter) -> None:
     near = SceneObject("near", "box", (0.4, 0.0, 0.1), size_m=(0.2, 1.2, 0.2))
     far = SceneObject("far", "box", (0.7, 0.0, 0.1), size_m=(0.2, 1.2, 0.2))
