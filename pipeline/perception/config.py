@@ -36,9 +36,9 @@ class PerceptionConfig:
     on a table or floor; conservative under overhangs) fills objects' unseen interiors and
     back halves. Rays that later pass through the filled space clear it as usual."""
     depth_edge_jump_m: float = 0.02
-    """Jump edge filter: both pixels of a depth jump larger than this (or than 4 pixel
-    footprints, for surfaces at grazing angles) between neighbours are dropped, and with them
-    the flying pixels a real camera puts between the surfaces [m]; 0 turns it off."""
+    """Flying pixel filter: a pixel whose depth differs from every 4-neighbour's by more than
+    this (or than 4 pixel footprints, for surfaces at grazing angles) lies between surfaces,
+    where cameras put "flying pixels" at depth edges, and is dropped [m]; 0 turns it off."""
     complete_support: bool = True
     """Complete the supporting surface (table top or floor) where nothing has been seen of it.
 

@@ -129,23 +129,23 @@ def depth_from_points(points_camera: npt.ArrayLike, intrinsics: CameraIntrinsics
 
 def remove_depth_edges(depth_m: npt.NDArray[np.float32], fx: float, *, min_jump_m: float,
                        max_slope_px: float = 4.0) -> int:
-    """In place: drop (set to +inf, no return) both pixels of every depth jump between 4-neighbours.
+    """In place: drop (set to NaN, invalid) pixels that belong to no neighbouring surface.
 
     At a depth edge, time-of-flight and stereo cameras return "flying pixels" between the
     near and the far surface, which land in free space (and, at the arm's silhouette, just
-    outside its self filter). A jump edge filter, as camera SDKs ship, removes them with the
-    edge pixels on both sides: a pixel whose depth differs from a 4-neighbour's by more than
-    max(`min_jump_m`, `max_slope_px` * depth / fx) goes. The second term keeps surfaces seen
-    at a grazing angle, whose depth grows by about depth / (fx * tan(angle)) per pixel.
+    outside its self filter). Such a pixel differs in depth from every 4-neighbour, while a
+    pixel on a real surface, even at its edge, has a neighbour on that same surface: a pixel
+    goes when no finite neighbour is within max(`min_jump_m`, `max_slope_px` * depth / fx) of
+    it. The second term keeps surfaces seen at a grazing angle, whose depth grows by about
+    depth / (fx * tan(angle)) per pixel. Unlike a jump edge filter that drops both sides of
+    every edge, this keeps the few pixels of a mostly hidden object. Dropped pixels become
+    NaN, "invalid": no return, and no evidence of free space either.
 
     Args:
-        depth_m: (H, W) float32 depth [m]; inf/NaN mean no return (never a jump). Dropped
-            pixels become +inf: free space along their rays, which is true of a flying pixel's
-            and of the far side's; the near side's voxels keep their evidence through the
-            object's other pixels in their footprints (`voxel_kernels.seen_through`).
+        depth_m: (H, W) float32 depth [m]; inf/NaN mean no return.
         fx: Focal length in pixels (of this image's resolution).
-        min_jump_m: Smallest depth difference that counts as a jump [m].
-        max_slope_px: Jumps up to this many pixel footprints (depth / fx) are surface slope.
+        min_jump_m: Depth difference beyond which a neighbour is on another surface [m].
+        max_slope_px: Differences up to this many pixel footprints (depth / fx) are surface slope.
 
     Returns:
         How many pixels were dropped.
@@ -153,16 +153,10 @@ def remove_depth_edges(depth_m: npt.NDArray[np.float32], fx: float, *, min_jump_
     finite = np.isfinite(depth_m)
     with np.errstate(invalid="ignore"):
         threshold = np.maximum(min_jump_m, max_slope_px * depth_m / fx)
-        # Between two returns only: an edge against "nothing within range" has no far surface
-        # for a pixel to fly to.
-        across = (np.abs(depth_m[:, 1:] - depth_m[:, :-1]) > np.minimum(threshold[:, 1:], threshold[:, :-1])) \
-            & finite[:, 1:] & finite[:, :-1]
-        down = (np.abs(depth_m[1:, :] - depth_m[:-1, :]) > np.minimum(threshold[1:, :], threshold[:-1, :])) \
-            & finite[1:, :] & finite[:-1, :]
-    edge = np.zeros(depth_m.shape, dtype=bool)
-    edge[:, 1:] |= across
-    edge[:, :-1] |= across
-    edge[1:, :] |= down
-    edge[:-1, :] |= down
-    depth_m[edge] = np.inf
-    return int(edge.sum())
+        padded = np.pad(depth_m, 1, constant_values=np.nan)
+        near_any = np.zeros(depth_m.shape, dtype=bool)
+        for neighbour in (padded[:-2, 1:-1], padded[2:, 1:-1], padded[1:-1, :-2], padded[1:-1, 2:]):
+            near_any |= np.abs(neighbour - depth_m) <= threshold  # NaN and inf neighbours never match
+    lonely = finite & ~near_any
+    depth_m[lonely] = np.nan
+    return int(lonely.sum())

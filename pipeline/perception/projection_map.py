@@ -150,8 +150,9 @@ class ProjectionOccupancyMap:
         """Fuse one depth image: its returns mark voxels occupied, what it sees past turns free.
 
         Args:
-            depth_m: (H, W) depth along the optical axis [m], matching `intrinsics`; NaN, inf
-                and values <= 0 mean "no return".
+            depth_m: (H, W) depth along the optical axis [m], matching `intrinsics`. +inf:
+                the ray met nothing within range (free space along it); NaN or <= 0: an
+                invalid pixel (no return, and no evidence of free space).
             intrinsics: Pinhole model of the image.
             world_from_camera: (4, 4) pose of the optical frame in the world frame.
             self_filter: Padded robot link model; returns on the robot are not obstacles, and

@@ -126,6 +126,8 @@ def seen_through(voxels: np.ndarray, origin_key: np.ndarray, resolution_m: float
     at all (nothing within the sensor's range on that ray). Voxels behind the camera, outside
     the image or beyond `max_range_m` get no evidence. Taking the nearest depth of the whole
     footprint keeps object edges, whose voxels straddle the silhouette, from being cleared.
+    An invalid pixel (NaN or <= 0) in the footprint is no evidence either: only +inf says the
+    ray met nothing.
     """
     h, w = depth_m.shape
     ny, nz = dims[1], dims[2]
@@ -158,7 +160,10 @@ def seen_through(voxels: np.ndarray, origin_key: np.ndarray, resolution_m: float
         for vv in range(max(vi - half, 0), min(vi + half, h - 1) + 1):
             for uu in range(max(ui - half, 0), min(ui + half, w - 1) + 1):
                 d = depth_m[vv, uu]
-                if d > 0.0 and math.isfinite(d) and d <= limit:
+                # +inf: nothing within range on this ray. NaN or <= 0: an invalid pixel (e.g.
+                # one the jump edge filter dropped), which says nothing about the space it
+                # looks through, so it keeps the voxel.
+                if not d > 0.0 or d <= limit:
                     clear = False
                     break
             if not clear:
