@@ -40,6 +40,8 @@ import yaml
 
 from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.messages import JointState, Setpoint
+from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.sim.goals import intruder_for_trajectory
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.services.config import RobonavConfig, ZenohConfig, default_config_path, load_config
@@ -57,6 +59,9 @@ def add_parser(kinds: Any) -> None:  # noqa: ANN401 - argparse's private subpars
                         help="executor.realtime_priority override (SCHED_FIFO 1-99; needs CAP_SYS_NICE)")
     parser.add_argument("--perception-hz", type=float, default=0.0,
                         help="run the perception service in another process, fed depth images at this rate (0: off)")
+    parser.add_argument("--drops", type=int, default=0,
+                        help="with --perception-hz: then drop a box on a moving arm's path this many times and time "
+                             "the stop from the first frame that shows it")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--config", default=None, help="YAML config (default: the packaged one)")
     parser.add_argument("--json", type=Path, default=None, help="write the summary as JSON to this file")
@@ -111,8 +116,14 @@ def duration_ratios(cfg: RobonavConfig, robot: RobotModel, count: int, seed: int
             "max_path_deviation_rad": float(np.max(deviations))}
 
 
-def publish_depth_frames(endpoint: str, config_path: str | None, rate_hz: float, stop: Any) -> None:  # noqa: ANN401 - a multiprocessing Event
-    """Process body: render the default scene's first camera once, publish it at `rate_hz` until `stop`."""
+def publish_depth_frames(endpoint: str, config_path: str | None, rate_hz: float, stop: Any,  # noqa: ANN401 - multiprocessing objects
+                         box_m: tuple[float, float, float] | None = None, box_on: Any = None,  # noqa: ANN401
+                         box_since: Any = None) -> None:  # noqa: ANN401
+    """Process body: render the default scene's first camera once, publish it at `rate_hz` until `stop`.
+
+    With `box_m`, a second frame with a 10 cm box centred there is rendered too and published
+    instead while `box_on` is set; `box_since` gets the wall time of its first publication.
+    """
     from robonav.pipeline.messages import DepthImage
     from robonav.pipeline.sim.world import SimWorld
     from robonav.services.common import open_session
@@ -120,29 +131,59 @@ def publish_depth_frames(endpoint: str, config_path: str | None, rate_hz: float,
 
     cfg = load_config(config_path)
     camera = cfg.cameras[0]
-    with SimWorld(cfg.robot, camera, dataclasses.replace(cfg.sim, follow="kinematic", gravity=False)) as world:
-        world.set_joint_target(cfg.robot.home_position_rad)
-        world.step()
-        frame = world.render_depth()
-        robot_label = next(label for label, name in world.body_labels().items() if name == "robot")
-    # The arm moves and this frame does not: its pixels would turn into obstacles where the arm
-    # no longer is. Without them the map is static, and the monitor checks every path against
-    # it without ever stopping one, so the stream never pauses.
-    depth = np.where(frame.segmentation == robot_label, np.inf, frame.depth_m).astype(np.float32)
+    scenes = [cfg.sim.objects]
+    if box_m is not None:
+        scenes.append((*cfg.sim.objects, SceneObject("dropped", "box", box_m, size_m=(0.1, 0.1, 0.1))))
+    depths = []
+    for objects in scenes:
+        sim = dataclasses.replace(cfg.sim, follow="kinematic", gravity=False, objects=objects)
+        with SimWorld(cfg.robot, camera, sim) as world:
+            world.set_joint_target(cfg.robot.home_position_rad)
+            world.step()
+            frame = world.render_depth()
+            robot_label = next(label for label, name in world.body_labels().items() if name == "robot")
+        # The arm moves and this frame does not: its pixels would turn into obstacles where the
+        # arm no longer is. Without them the map is static, and the monitor checks every path
+        # against it without ever stopping one, so the stream never pauses.
+        depths.append(np.where(frame.segmentation == robot_label, np.inf, frame.depth_m).astype(np.float32))
     session = open_session(ZenohConfig(connect=(endpoint,)))
     key = f"{Keys(cfg.cell).root}/camera/{camera.camera_id}/depth"
-    seq, next_at = 0, time.monotonic()
+    seq, next_at, showing_box = 0, time.monotonic(), False
     while not stop.is_set():
         seq += 1
-        session.put(key, DepthImage(stamp=time.time(), camera_id=camera.camera_id, intrinsics=frame.intrinsics,
-                                    depth_m=depth, seq=seq).to_wire())
+        with_box = box_on is not None and box_on.is_set()
+        stamp = time.time()
+        session.put(key, DepthImage(stamp=stamp, camera_id=camera.camera_id, intrinsics=frame.intrinsics,
+                                    depth_m=depths[1 if with_box else 0], seq=seq).to_wire())
+        if with_box and not showing_box:
+            box_since.value = stamp
+        showing_box = with_box
         next_at += 1.0 / rate_hz
         time.sleep(max(0.0, next_at - time.monotonic()))
     session.close()
 
 
+SWING_FROM = np.array([-1.3, 0.0, 0.0, -1.2, 0.0, 1.9, 0.785])
+SWING_TO = np.array([1.3, 0.0, 0.0, -1.2, 0.0, 1.9, 0.785])
+"""The drop trials swing the base with the hand high and out, clear of the default scene."""
+DROP_SCALING = 0.3
+
+
+def drop_target_m(cfg: RobonavConfig, robot: RobotModel) -> tuple[float, float, float]:
+    """Where the hand passes on the swing at least 1.5 s after it starts (the box's centre)."""
+    trajectory = time_parameterize(np.array([SWING_FROM, SWING_TO]), max_velocity=robot.velocity_limits,
+                                   max_acceleration=robot.acceleration_limits, max_jerk=robot.jerk_limits,
+                                   velocity_scaling=DROP_SCALING, acceleration_scaling=DROP_SCALING,
+                                   max_path_deviation_rad=cfg.executor.max_path_deviation_rad)
+    times, q, _, _ = trajectory.sample_uniform(0.05)
+    intruder = intruder_for_trajectory(robot, times, q, link=cfg.robot.end_effector_link, slide_s=0.0, min_lead_s=1.5)
+    if intruder is None:
+        raise RuntimeError("no place on the swing to drop a box on")
+    return intruder.target_m
+
+
 def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: int, *,
-                  perception_hz: float = 0.0, config_path: str | None = None) -> dict[str, Any]:
+                  perception_hz: float = 0.0, config_path: str | None = None, drops: int = 0) -> dict[str, Any]:
     from robonav.services.client import RobonavClient
     from robonav.services.common import open_session
     from robonav.services.executor import ExecutorNode
@@ -175,7 +216,9 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
     robot_thread = threading.Thread(target=fake_robot, daemon=True)
     robot_thread.start()
     helpers: list[Any] = []
-    frames_stop = multiprocessing.get_context("spawn").Event()
+    spawn = multiprocessing.get_context("spawn")
+    frames_stop, box_on, box_since = spawn.Event(), spawn.Event(), spawn.Value("d", 0.0)
+    drop_delays_s: list[float] = []
     maps_before = 0
     if perception_hz > 0:
         with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as handle:
@@ -185,8 +228,10 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
             yaml.safe_dump(data, handle)
         helpers.append(subprocess.Popen([sys.executable, "-m", "robonav.services.cli", "serve", "perception",
                                          "--config", handle.name, "--log-level", "WARNING"]))
-        frames = multiprocessing.get_context("spawn").Process(
-            target=publish_depth_frames, args=(endpoint, handle.name, perception_hz, frames_stop), daemon=True)
+        box_m = drop_target_m(cfg, robot) if drops > 0 else None
+        frames = spawn.Process(target=publish_depth_frames,
+                               args=(endpoint, handle.name, perception_hz, frames_stop, box_m, box_on, box_since),
+                               daemon=True)
         frames.start()
         helpers.append(frames)
         if not client.wait_for(lambda: client.occupancy is not None, 60.0):
@@ -218,6 +263,10 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
             time.sleep(max(min(duration_s - 0.3, end - time.monotonic()), 0.05))
         times = np.array(node.publish_times_s)
         maps = (client.occupancy.seq - maps_before) if perception_hz > 0 and client.occupancy is not None else 0
+        for trial in range(drops if perception_hz > 0 else 0):
+            delay = _drop_trial(client, position, box_on, box_since, trial)
+            if delay is not None:
+                drop_delays_s.append(delay)
     finally:
         frames_stop.set()
         for helper in helpers:
@@ -238,12 +287,47 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
     nominal_s = 1.0 / cfg.executor.rate_hz
     periods = np.diff(times)
     error_ms = np.abs(periods - nominal_s) * 1e3
-    return {"setpoints": int(times.size), "executes": preemptions, "perception_maps": maps,
+    return {"drops": drops, "stopped": len(drop_delays_s), "stop_after_frame_ms": [round(d * 1e3, 1) for d in drop_delays_s],
+            "setpoints": int(times.size), "executes": preemptions, "perception_maps": maps,
             "perception_maps_hz": maps / seconds,
             "p50": float(np.percentile(error_ms, 50)), "p99": float(np.percentile(error_ms, 99)),
             "max": float(error_ms.max()), "missed": int(np.sum(periods > 2 * nominal_s)),
             "max_at_s": float(times[int(np.argmax(error_ms))] - times[0]),
             "mean_period_ms": float(periods.mean() * 1e3)}
+
+
+def _drop_summary(periods: dict[str, Any]) -> dict[str, Any]:
+    delays = periods["stop_after_frame_ms"]
+    p50, p95, top = (np.percentile(delays, [50, 95, 100]).round(1).tolist() if delays else (None, None, None))
+    return {"drops": periods["drops"], "stopped": periods["stopped"], "p50": p50, "p95": p95, "max": top,
+            "stop_after_frame_ms": delays}
+
+
+def _drop_trial(client: Any, position: list[np.ndarray], box_on: Any, box_since: Any, trial: int) -> float | None:  # noqa: ANN401
+    """Swing, show the box 0.3 s in; returns stop command time - first frame with the box [s]
+    (None when the executor did not stop the swing for it)."""
+    def move(path: np.ndarray, trajectory_id: str, **fields: Any) -> Any:  # noqa: ANN401
+        reply = client.execute(path, trajectory_id=trajectory_id, **fields)
+        if not hasattr(reply, "duration_s"):
+            raise RuntimeError(f"drop trial {trial}: execute refused: {reply}")
+        return reply
+
+    box_on.clear()
+    time.sleep(0.5)  # perception sees the box gone (it clears within 3 frames)
+    back = move(np.array([position[0].copy(), SWING_FROM]), f"drop-back-{trial}")
+    client.wait_for_trajectory(back.trajectory_id, back.duration_s + 5.0)
+    time.sleep(0.3)
+    swing = move(np.array([position[0].copy(), SWING_TO]), f"drop-{trial}", max_velocity_scaling_factor=DROP_SCALING,
+                 max_acceleration_scaling_factor=DROP_SCALING)
+    time.sleep(0.3)
+    box_since.value = 0.0
+    box_on.set()
+    client.wait_for_trajectory(swing.trajectory_id, swing.duration_s + 5.0)
+    status = client.status
+    box_on.clear()
+    if status is None or status.error_code != "PATH_BLOCKED" or status.blocked_stamp is None or box_since.value <= 0:
+        return None
+    return float(status.blocked_stamp - box_since.value)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -257,13 +341,15 @@ def main(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, executor=dataclasses.replace(cfg.executor, realtime_priority=args.realtime_priority))
     robot = RobotModel.from_config(cfg.robot)
     ratios = duration_ratios(cfg, robot, args.paths, args.seed)
-    periods = period_errors(cfg, robot, args.seconds, args.seed, perception_hz=args.perception_hz, config_path=args.config)
+    periods = period_errors(cfg, robot, args.seconds, args.seed, perception_hz=args.perception_hz, config_path=args.config,
+                            drops=args.drops)
     report = {"rate_hz": cfg.executor.rate_hz, "seconds": args.seconds, "busy_wait_s": cfg.executor.busy_wait_s,
               "realtime_priority": cfg.executor.realtime_priority,
               "period_error_ms": {k: periods[k] for k in ("p50", "p99", "max")}, "missed": periods["missed"],
               "setpoints": periods["setpoints"], "executes": periods["executes"], "max_at_s": periods["max_at_s"],
               "mean_period_ms": periods["mean_period_ms"],
               "perception_hz": args.perception_hz, "perception_maps_hz": periods["perception_maps_hz"],
+              "drop_stop": _drop_summary(periods),
               "duration_ratio_vs_toppra": ratios,
               "method": "period: time.monotonic() after each setpoint put in the executor's spin loop (same process); "
                         "ratio: time_parameterize duration / TOPP-RA (vel+acc, cubic spline) duration"}
@@ -272,6 +358,10 @@ def main(args: argparse.Namespace) -> int:
     if args.perception_hz > 0:
         print(f"perception in another process: fed {args.perception_hz:.0f} Hz, published "
               f"{periods['perception_maps_hz']:.1f} maps/s to the executor's path monitor")
+    if args.drops > 0 and args.perception_hz > 0:
+        drop = report["drop_stop"]
+        print(f"box dropped on the path {drop['drops']} times: stopped {drop['stopped']}; stop command after the first "
+              f"frame showing it [ms]: p50 {drop['p50']}  p95 {drop['p95']}  max {drop['max']}")
     print(f"period error [ms]: p50 {periods['p50']:.3f}  p99 {periods['p99']:.3f}  max {periods['max']:.3f}  "
           f"missed (> 2x period) {periods['missed']}")
     print(f"duration vs TOPP-RA over {ratios['paths']} paths: median {ratios['median']:.3f}  max {ratios['max']:.3f}  "

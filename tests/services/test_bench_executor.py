@@ -1,4 +1,5 @@
-"""`robonav bench executor`: the report's fields, with the perception service feeding the path monitor."""
+"""`robonav bench executor`: the report's fields, with the perception service feeding the path monitor
+and a box dropped on a moving arm's path."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from pathlib import Path
 def test_the_executor_bench_reports_periods_ratios_and_the_perception_load(tmp_path: Path) -> None:
     out = tmp_path / "executor.json"
     run = subprocess.run([sys.executable, "-m", "robonav.services.cli", "bench", "executor", "--seconds", "4",
-                          "--paths", "2", "--perception-hz", "10", "--json", str(out)],
+                          "--paths", "2", "--perception-hz", "10", "--drops", "1", "--json", str(out)],
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-3000:]
     report = json.loads(out.read_text(encoding="utf-8"))
@@ -19,4 +20,6 @@ def test_the_executor_bench_reports_periods_ratios_and_the_perception_load(tmp_p
     assert set(report["period_error_ms"]) == {"p50", "p99", "max"} and report["missed"] >= 0
     assert {"median", "max"} <= set(report["duration_ratio_vs_toppra"])
     assert report["perception_hz"] == 10.0 and report["perception_maps_hz"] > 0  # maps reached the executor
-    assert "PATH_BLOCKED" not in run.stderr and "blocked" not in run.stderr  # a static map stops nothing
+    assert run.stderr.count("is blocked") == 1  # the static map stopped nothing; the dropped box did
+    drop = report["drop_stop"]
+    assert (drop["drops"], drop["stopped"]) == (1, 1) and drop["p50"] > 0
