@@ -134,7 +134,7 @@ wait_healthy 300
 plan_until_ok 60 --goal $goal1 --race --execute
 log "2 planners: the race answered from $(field replier): $(field result)"
 
-victim=$(containers planner | head -1)
+victim=$(containers planner | sed -n 1p)  # sed reads it all: `head` can end the pipe early (SIGPIPE under pipefail)
 pid=$(docker inspect -f '{{.State.Pid}}' "$victim")
 $sudo kill -9 "$pid"  # the planner process dies as in a crash; the container exits with it
 for _ in $(seq 20); do [ "$(docker inspect -f '{{.State.Pid}}' "$victim")" != "$pid" ] && break; sleep 0.5; done
