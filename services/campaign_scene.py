@@ -28,7 +28,7 @@ from robonav.pipeline.sim.scenes import Scene
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.config import RobonavConfig
-from robonav.services.sim_objects import object_spec
+from robonav.services.scene_specs import object_spec
 
 log = logging.getLogger("robonav.campaign")
 

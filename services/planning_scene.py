@@ -13,27 +13,22 @@ import dataclasses
 import logging
 import threading
 from collections.abc import Callable, Sequence
-from typing import TypeVar
 
 import numpy as np
 import zenoh
 
 from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.joint_order import reorder_to_robot
-from robonav.pipeline.messages import SceneObjectSpec, SceneObjectState, SceneRequest, SceneResponse
+from robonav.pipeline.messages import SceneObjectSpec, SceneRequest, SceneResponse
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.transforms import FloatArray
 from robonav.pipeline.wire import ErrorCode, ProtocolError
 from robonav.services.common import decode_request, reply_ok
+from robonav.services.scene_specs import checked, invalid_request, object_state, scene_object
 
 log = logging.getLogger("robonav.planner.scene")
 
 WORLD_FRAME = "world"
-T = TypeVar("T")
-
-
-def _invalid(message: str, key: str, **details: object) -> ProtocolError:
-    return ProtocolError(ErrorCode.INVALID_REQUEST, message, {"key": key, **details})
 
 
 class PlanningScene:
@@ -96,9 +91,9 @@ class PlanningScene:
         objects = dict(self._objects)
         for i, spec in enumerate(request.objects):
             if spec.name in attached:
-                raise _invalid(f"'{spec.name}' is attached to a link; detach or remove it first", f"objects[{i}].name")
+                raise invalid_request(f"'{spec.name}' is attached to a link; detach or remove it first", f"objects[{i}].name")
             self._require_world_frame(spec, i)
-            objects[spec.name] = _scene_object(spec, i)
+            objects[spec.name] = scene_object(spec, f"objects[{i}]")
         self._set_world_objects(objects)
         return True
 
@@ -107,7 +102,7 @@ class PlanningScene:
         for i, spec in enumerate(request.objects):
             current = self._world_object(spec.name, f"objects[{i}].name")
             self._require_world_frame(spec, i)
-            objects[spec.name] = _checked(lambda: dataclasses.replace(
+            objects[spec.name] = checked(lambda: dataclasses.replace(
                 current,
                 position_m=current.position_m if spec.position_m is None else spec.position_m,
                 quat_xyzw=current.quat_xyzw if spec.quat_xyzw is None else spec.quat_xyzw,
@@ -144,15 +139,15 @@ class PlanningScene:
                 raise self._unknown(name, f"names[{i}]")
         for i, spec in enumerate(request.objects):
             if spec.type is None:
-                raise _invalid(f"attach of a new object '{spec.name}' needs type and position_m; "
+                raise invalid_request(f"attach of a new object '{spec.name}' needs type and position_m; "
                                "attach existing world objects by 'names'", f"objects[{i}].type")
             if spec.name in self._objects:
-                raise _invalid(f"'{spec.name}' is a world object; attach it by 'names' or remove it first", f"objects[{i}].name")
+                raise invalid_request(f"'{spec.name}' is a world object; attach it by 'names' or remove it first", f"objects[{i}].name")
             frame = spec.frame_id or WORLD_FRAME
             if frame not in (WORLD_FRAME, link):
-                raise _invalid(f"objects[{i}].frame_id must be '{WORLD_FRAME}' or the attach link '{link}', got '{frame}'",
+                raise invalid_request(f"objects[{i}].frame_id must be '{WORLD_FRAME}' or the attach link '{link}', got '{frame}'",
                                f"objects[{i}].frame_id")
-            plan.append((_scene_object(spec, i), None if frame == WORLD_FRAME else np.eye(4)))
+            plan.append((scene_object(spec, f"objects[{i}]"), None if frame == WORLD_FRAME else np.eye(4)))
         taken = {obj.name for obj, _ in plan}
         self._set_world_objects({k: v for k, v in self._objects.items() if k not in taken})
         for obj, world_from_link in plan:
@@ -166,7 +161,7 @@ class PlanningScene:
         attached = {a.name for a in self._world.attached_objects}
         for i, name in enumerate(request.names):
             if name not in attached:
-                raise _invalid(f"no attached object named '{name}' (attached: {sorted(attached)})", f"names[{i}]", name=name)
+                raise invalid_request(f"no attached object named '{name}' (attached: {sorted(attached)})", f"names[{i}]", name=name)
         q = self._robot_q(request)
         objects = dict(self._objects)
         for name in request.names:
@@ -199,11 +194,11 @@ class PlanningScene:
 
     def _unknown(self, name: str, key: str) -> ProtocolError:
         known = sorted([*self._objects, *(a.name for a in self._world.attached_objects)])
-        return _invalid(f"no object named '{name}' in the scene (objects: {known})", key, name=name)
+        return invalid_request(f"no object named '{name}' in the scene (objects: {known})", key, name=name)
 
     def _require_world_frame(self, spec: SceneObjectSpec, index: int) -> None:
         if (spec.frame_id or WORLD_FRAME) != WORLD_FRAME:
-            raise _invalid(f"objects[{index}].frame_id must be '{WORLD_FRAME}' for world objects, got '{spec.frame_id}'",
+            raise invalid_request(f"objects[{index}].frame_id must be '{WORLD_FRAME}' for world objects, got '{spec.frame_id}'",
                            f"objects[{index}].frame_id")
 
     def _require_robot_frames(self, link: str, touch_links: tuple[str, ...]) -> None:
@@ -212,48 +207,22 @@ class PlanningScene:
             try:
                 robot.frame_pose(robot.home_position_rad, name)
             except ValueError as exc:
-                raise _invalid(f"{key}: '{name}' is not a link of robot '{robot.config.name}'", key, name=name) from exc
+                raise invalid_request(f"{key}: '{name}' is not a link of robot '{robot.config.name}'", key, name=name) from exc
 
     def _robot_q(self, request: SceneRequest) -> FloatArray:
         robot = self._world.robot
         if request.joint_positions is not None:
             q = reorder_to_robot(request.joint_positions, request.joint_names, robot.joint_names, "joint_positions")
-            return _checked(lambda: robot.validate_q(q, "joint_positions"), "joint_positions")
+            return checked(lambda: robot.validate_q(q, "joint_positions"), "joint_positions")
         if self._current_q is None:
             raise ProtocolError(ErrorCode.NO_JOINT_STATE, "a world-frame pose needs joint_positions (this scene has no joint state)")
         return self._current_q()
 
     def _describe(self, request_id: str | None) -> SceneResponse:
-        states = [_state(obj) for obj in self._objects.values()]
+        states = [object_state(obj) for obj in self._objects.values()]
         for attached in self._world.attached_objects:
-            states.append(dataclasses.replace(_state(attached.object), frame_id=attached.link, attached_link=attached.link,
+            states.append(dataclasses.replace(object_state(attached.object), frame_id=attached.link, attached_link=attached.link,
                                               touch_links=attached.touch_links))
         return SceneResponse(revision=self._revision, objects=tuple(states), request_id=request_id)
 
 
-def _checked(build: Callable[[], T], key: str) -> T:
-    """Run a constructor; its ValueError becomes INVALID_REQUEST naming `key`."""
-    try:
-        return build()
-    except ProtocolError:
-        raise
-    except ValueError as exc:
-        raise _invalid(str(exc), key) from exc
-
-
-def _scene_object(spec: SceneObjectSpec, index: int) -> SceneObject:
-    """A complete object spec (type and position given) as a SceneObject."""
-    assert spec.type is not None and spec.position_m is not None  # SceneRequest checks add/attach specs
-    return _checked(lambda: SceneObject(
-        name=spec.name, type=spec.type, position_m=spec.position_m,  # type: ignore[arg-type]
-        quat_xyzw=spec.quat_xyzw or (0.0, 0.0, 0.0, 1.0), size_m=spec.size_m,  # type: ignore[arg-type]
-        radius_m=spec.radius_m, length_m=spec.length_m, vertices_m=spec.vertices_m, triangles=spec.triangles,
-    ), f"objects[{index}]")
-
-
-def _state(obj: SceneObject) -> SceneObjectState:
-    return SceneObjectState(
-        name=obj.name, type=obj.type, position_m=tuple(float(v) for v in obj.position_m),
-        quat_xyzw=tuple(float(v) for v in obj.quat_xyzw), size_m=obj.size_m, radius_m=obj.radius_m,
-        length_m=obj.length_m, vertex_count=None if obj.vertices_m is None else int(len(obj.vertices_m)),
-    )

@@ -7,63 +7,17 @@ physics thread (the sim hands it over), so the world is never touched from two t
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
-from typing import TypeVar
 
 import numpy as np
 
-from robonav.pipeline.messages import (ObjectMotionSpec, SceneObjectSpec, SceneObjectState, SimObjectsRequest,
-                                       SimObjectsResponse)
-from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.messages import ObjectMotionSpec, SimObjectsRequest, SimObjectsResponse
 from robonav.pipeline.sim.motion import MotionScript, ObjectMotion, Pose
 from robonav.pipeline.sim.world import SimWorld
-from robonav.pipeline.wire import ErrorCode, ProtocolError
-
-T = TypeVar("T")
-
-
-def _invalid(message: str, key: str) -> ProtocolError:
-    return ProtocolError(ErrorCode.INVALID_REQUEST, message, {"key": key})
-
-
-def _checked(build: Callable[[], T], key: str) -> T:
-    try:
-        return build()
-    except ProtocolError:
-        raise
-    except ValueError as exc:
-        raise _invalid(str(exc), key) from exc
-
-
-def scene_object(spec: SceneObjectSpec, key: str) -> SceneObject:
-    """A complete object spec (type and position given) as a SceneObject."""
-    if spec.type is None or spec.position_m is None:
-        raise _invalid(f"object '{spec.name}' needs type and position_m", key)
-    return _checked(lambda: SceneObject(
-        name=spec.name, type=spec.type, position_m=spec.position_m,  # type: ignore[arg-type]
-        quat_xyzw=spec.quat_xyzw or (0.0, 0.0, 0.0, 1.0), size_m=spec.size_m,  # type: ignore[arg-type]
-        radius_m=spec.radius_m, length_m=spec.length_m, vertices_m=spec.vertices_m, triangles=spec.triangles,
-    ), key)
-
-
-def object_state(obj: SceneObject) -> SceneObjectState:
-    return SceneObjectState(
-        name=obj.name, type=obj.type, position_m=tuple(float(v) for v in obj.position_m),
-        quat_xyzw=tuple(float(v) for v in obj.quat_xyzw), size_m=obj.size_m, radius_m=obj.radius_m,
-        length_m=obj.length_m, vertex_count=None if obj.vertices_m is None else int(len(obj.vertices_m)),
-    )
-
-
-def object_spec(obj: SceneObject) -> SceneObjectSpec:
-    """The wire form of a core object (for clients that send scenes)."""
-    return SceneObjectSpec(name=obj.name, type=obj.type, position_m=tuple(obj.position_m),
-                           quat_xyzw=tuple(obj.quat_xyzw), size_m=obj.size_m, radius_m=obj.radius_m,
-                           length_m=obj.length_m, vertices_m=obj.vertices_m, triangles=obj.triangles)
-
+from robonav.services.scene_specs import checked, invalid_request, object_spec, object_state, scene_object
 
 def object_motion(spec: ObjectMotionSpec, key: str) -> ObjectMotion:
     obj = None if spec.object is None else scene_object(spec.object, f"{key}.object")
-    return _checked(lambda: ObjectMotion(
+    return checked(lambda: ObjectMotion(
         name=spec.name, action=spec.action, object=obj, position_m=spec.position_m,  # type: ignore[arg-type]
         quat_xyzw=spec.quat_xyzw, duration_s=spec.duration_s, at_s=spec.at_s,  # type: ignore[arg-type]
         at_progress=spec.at_progress, trajectory_id=spec.trajectory_id), key)
@@ -103,9 +57,9 @@ class SimObjects:
         elif op == "move":
             for i, spec in enumerate(request.objects):
                 if spec.name not in existing:
-                    raise _invalid(f"no sim object named {spec.name!r} (objects: {sorted(existing)})", f"objects[{i}].name")
+                    raise invalid_request(f"no sim object named {spec.name!r} (objects: {sorted(existing)})", f"objects[{i}].name")
                 if spec.quat_xyzw is not None and float(np.linalg.norm(spec.quat_xyzw)) < 1e-9:
-                    raise _invalid(f"object '{spec.name}': quat_xyzw has zero norm", f"objects[{i}].quat_xyzw")
+                    raise invalid_request(f"object '{spec.name}': quat_xyzw has zero norm", f"objects[{i}].quat_xyzw")
             current = {obj.name: obj for obj in self.world.objects}
             for spec in request.objects:
                 self.world.set_object_pose(spec.name, spec.position_m or current[spec.name].position_m, spec.quat_xyzw)
@@ -113,7 +67,7 @@ class SimObjects:
         elif op == "remove":
             for i, name in enumerate(request.names):
                 if name not in existing:
-                    raise _invalid(f"no sim object named {name!r} (objects: {sorted(existing)})", f"names[{i}]")
+                    raise invalid_request(f"no sim object named {name!r} (objects: {sorted(existing)})", f"names[{i}]")
             for name in request.names:
                 self.world.remove_object(name)
             self._changed(structure=True)

@@ -20,7 +20,7 @@ from robonav.pipeline.sim.goals import intruder_for_trajectory, perceivable_obje
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.services.client import RobonavClient
 from robonav.services.config import load_config
-from robonav.services.sim_objects import object_spec
+from robonav.services.scene_specs import object_spec
 
 DEFAULT = load_config()
 # The base swings the arm, hand high and out, from one side of the table to the other: long
