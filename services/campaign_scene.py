@@ -111,9 +111,7 @@ class SceneRunner:
         """Times the arm was jogged home without the planner (in an emptied world)."""
         self._intruder_rest_at = 0.0
         if self.guard is not None:  # compile its kinematics now, not while the arm moves
-            self.guard.start(None)
-            self.guard.update_map(np.zeros((1, 3)), 0.02)
-            self.guard.remaining_blocked(np.array([self.home, self.home]), self.home)
+            self.guard.warm_up(self.home)
 
     # --- queries --------------------------------------------------------------------------
 

@@ -104,12 +104,8 @@ class ExecutorNode(Node):
         self._guard = PathGuard(self.robot, padding_m=cfg.robot.padding_m, inflation_m=cfg.perception.inflation_m,
                                 edge_resolution_rad=cfg.planner.edge_resolution_rad)
         if cfg.executor.monitor_path:
-            # Compile the guard's kernels now: compiling on the first map would hold the GIL,
-            # and stall the setpoint loop, for a few hundred milliseconds.
-            home = np.asarray(self.robot.home_position_rad, dtype=float)
-            self._guard.start(None)
-            self._guard.update_map(home[None, :3] * 0.0 + 10.0, 0.02)
-            self._guard.first_blocked(np.array([home, home]), home)
+            # Now, not on the first map: compiling would stall the setpoint loop.
+            self._guard.warm_up(self.robot.home_position_rad)
         self._map_sub = (declare_latched_subscriber(session, keys.occupancy, self.on_occupancy)
                          if cfg.executor.monitor_path else None)
         self._monitor_stop = threading.Event()

@@ -41,6 +41,17 @@ class PathGuard:
         self._new_centres = np.zeros((0, 3))
         self._voxel_m = 0.0
 
+    def warm_up(self, q: npt.ArrayLike) -> None:
+        """Compile the kernels and run both stages once at `q` (n,), then forget it all: the
+        first real check then costs what every later one does (compiling takes a few hundred
+        milliseconds, holding the GIL). A voxel at the arm makes the FCL stage run too."""
+        state = np.asarray(q, dtype=np.float64)
+        hand = self._kinematics.link_poses_batch(state[None])[0, self._spheres.link_index[-1], :3, 3]
+        self.start(None)
+        self.update_map(hand[None], 0.02)
+        self.first_blocked(np.array([state, state]), state)
+        self.start(None)
+
     def start(self, centres_m: npt.ArrayLike | None, voxel_m: float = 0.0) -> None:
         """A path starts executing, planned on (about) this map: only voxels new since then count.
 
