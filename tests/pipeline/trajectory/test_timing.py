@@ -268,3 +268,27 @@ def test_bad_sample_arguments_raise() -> None:
         trajectory.sample_uniform(0.0)
     with pytest.raises(ValueError, match="t_s"):
         trajectory.sample(float("nan"))
+    with pytest.raises(ValueError, match="finite"):
+        trajectory.sample_many([0.0, float("inf")])
+
+
+def test_sample_many_is_sample_at_every_time() -> None:
+    """Every kind of piece: straight lines, corner blends, a preemption blend, a stop, a hold."""
+    from robonav.pipeline.trajectory.stopping import stop_trajectory
+
+    blended = time_parameterize(_panda_path(30), **LIMITS, velocity_scaling=0.5, acceleration_scaling=0.5)
+    q, qd, qdd = blended.sample(0.4 * blended.duration_s)
+    trajectories = [
+        time_parameterize(_panda_path(31), **LIMITS, max_path_deviation_rad=0.0),
+        blended,
+        blend_from_state(time_parameterize(_panda_path(32), **LIMITS), q, qd, qdd),
+        stop_trajectory(q, qd, qdd, **LIMITS, synchronize=True),
+        time_parameterize(np.zeros((2, 7)), **LIMITS),
+    ]
+    for trajectory in trajectories:
+        times = np.concatenate([np.linspace(-0.5, trajectory.duration_s + 0.5, 997),
+                                trajectory.segment_start_times_s, [trajectory.duration_s]])
+        many = trajectory.sample_many(times)
+        one = [trajectory.sample(float(t)) for t in times]
+        for k in range(3):
+            np.testing.assert_array_equal(many[k], np.array([s[k] for s in one]))
