@@ -218,7 +218,7 @@ class ExecutorNode(Node):
                 log.exception("path monitor: check failed")
 
     def _check_rest_of_path(self, execution: _Execution, q_commanded: np.ndarray, occupancy: Occupancy) -> None:
-        blocked_at = self._guard.first_blocked(execution.path, q_commanded)
+        blocked_at = self._guard.blocked_state(execution.path, q_commanded)
         if blocked_at is None:
             return
         with self._lock:

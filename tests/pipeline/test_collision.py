@@ -202,3 +202,23 @@ def test_input_errors(panda: RobotModel, world: CollisionWorld) -> None:
         world.set_objects([BLOCK, BLOCK])
     with pytest.raises(ValueError, match="padding_m"):
         CollisionWorld(panda, padding_m=-0.1)
+
+
+def test_touches_cubes_agrees_with_the_same_cubes_as_objects(panda: RobotModel) -> None:
+    """The path guard's quick check: padded links against axis-aligned cubes, as set_objects would."""
+    rng = np.random.default_rng(7)
+    quick = CollisionWorld(panda, padding_m=0.02, broad_phase=False)
+    reference = CollisionWorld(panda, padding_m=0.02)
+    side = 0.06
+    outcomes = set()
+    for _ in range(40):
+        q = panda.home_position_rad + rng.uniform(-0.8, 0.8, panda.dof)
+        hand = panda.frame_pose(q, "panda_hand")[:3, 3]
+        cubes = hand + rng.uniform(-0.25, 0.25, (5, 3))
+        reference.set_objects([SceneObject(f"c{i}", "box", tuple(c), size_m=(side, side, side))
+                               for i, c in enumerate(cubes)])
+        expected = any(other.startswith("c") for _, other in reference.collisions(q))
+        assert quick.touches_cubes(q, cubes, side) == expected
+        outcomes.add(expected)
+    assert outcomes == {True, False}
+    assert not quick.touches_cubes(panda.home_position_rad, np.zeros((0, 3)), side)
