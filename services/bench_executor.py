@@ -1,10 +1,10 @@
 """`robonav bench executor`: setpoint timing of the streaming loop, and trajectory durations vs TOPP-RA.
 
-(a) Period error. A Zenoh router, the executor node (its real `spin` loop in a thread) and a
-fake robot (echoes the last setpoint as the joint state at 100 Hz, so the watchdog is
-satisfied) run in this process for `--seconds`. Paths between seeded random configurations
+(a) Period error. A Zenoh router and a fake robot (echoes the last setpoint as the joint state
+at 100 Hz, so the watchdog is satisfied) run in this process, the executor in its own (as
+`robonav serve executor` runs it, with its setpoint stream in a third), for `--seconds`. Paths between seeded random configurations
 are executed back to back, each preempting the last before it ends, so setpoints stream
-without a pause. The loop appends `time.monotonic()` right after each setpoint `put`
+without a pause. The stream keeps `time.monotonic()` right after each setpoint `put`
 returns; the period error is |t[i+1] - t[i] - 1/rate|. This measures the executor's own
 schedule (sleep wake-up jitter, GIL stalls, the cost of `put`), not the delivery latency to
 a subscriber. A missed cycle is a period longer than twice the nominal one. With
@@ -182,11 +182,28 @@ def drop_target_m(cfg: RobonavConfig, robot: RobotModel) -> tuple[float, float, 
     return intruder.target_m
 
 
+def _executor_process(cfg: RobonavConfig, keep_times: int, conn: Any) -> None:  # noqa: ANN401 - a Connection
+    """Process body: the executor node as its service runs it; "stats" → its stream's stats, "stop" → exit."""
+    from robonav.services.common import open_session
+    from robonav.services.executor import ExecutorNode
+
+    with open_session(cfg.zenoh) as session:
+        node = ExecutorNode(cfg, session, keep_stream_times=keep_times)
+        stop = threading.Event()
+        spinner = threading.Thread(target=node.spin, args=(stop,), daemon=True)
+        spinner.start()
+        conn.send("ready")
+        while conn.recv() == "stats":
+            conn.send(node.stream_stats())
+        stop.set()
+        spinner.join(timeout=5.0)
+        node.close()
+
+
 def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: int, *,
                   perception_hz: float = 0.0, config_path: str | None = None, drops: int = 0) -> dict[str, Any]:
     from robonav.services.client import RobonavClient
     from robonav.services.common import open_session
-    from robonav.services.executor import ExecutorNode
 
     from robonav.services.keys import Keys
     import socket
@@ -195,11 +212,12 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
         s.bind(("127.0.0.1", 0))
         endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
     router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
-    node_session = open_session(ZenohConfig(connect=(endpoint,)))
-    node = ExecutorNode(cfg, node_session)
-    node.publish_times_s = []
-    stop = threading.Event()
-    spinner = threading.Thread(target=node.spin, args=(stop,), daemon=True)
+    cfg = dataclasses.replace(cfg, zenoh=ZenohConfig(connect=(endpoint,)))
+    spawn = multiprocessing.get_context("spawn")
+    executor_conn, child_conn = spawn.Pipe()
+    # Not a daemon: the executor starts its setpoint stream as a child process.
+    executor = spawn.Process(target=_executor_process,
+                             args=(cfg, int(seconds * cfg.executor.rate_hz * 1.5) + 10_000, child_conn))
     client_session = open_session(ZenohConfig(connect=(endpoint,)))
     client = RobonavClient(client_session, cfg.cell)
     keys = Keys(cfg.cell)
@@ -216,7 +234,6 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
     robot_thread = threading.Thread(target=fake_robot, daemon=True)
     robot_thread.start()
     helpers: list[Any] = []
-    spawn = multiprocessing.get_context("spawn")
     frames_stop, box_on, box_since = spawn.Event(), spawn.Event(), spawn.Value("d", 0.0)
     drop_delays_s: list[float] = []
     maps_before = 0
@@ -237,12 +254,15 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
         if not client.wait_for(lambda: client.occupancy is not None, 60.0):
             raise RuntimeError("the perception service published no map within 60 s")
         maps_before = client.occupancy.seq if client.occupancy is not None else 0
-    spinner.start()
+    executor.start()
+    if not executor_conn.poll(120.0) or executor_conn.recv() != "ready":
+        raise RuntimeError("the executor process did not start")
     rng = np.random.default_rng(seed)
     lower, upper = robot.lower_limits_rad + 0.1, robot.upper_limits_rad - 0.1
     preemptions = 0
     try:
-        client.wait_for(lambda: node._measured_q is not None, 5.0)
+        client.wait_for(lambda: client.status is not None, 10.0)
+        time.sleep(0.5)  # the fake robot's joint states reach the executor
         # With perception on, the path monitor checks every path against the scene's map: paths
         # through the table would be stopped (rightly), pausing the stream, so draw clear ones.
         scene = CollisionWorld(robot, padding_m=0.08) if perception_hz > 0 else None
@@ -261,7 +281,11 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
             preemptions += 1
             # Preempt 0.3 s before the end so the stream never pauses.
             time.sleep(max(min(duration_s - 0.3, end - time.monotonic()), 0.05))
-        times = np.array(node.publish_times_s)
+        executor_conn.send("stats")
+        if not executor_conn.poll(60.0):
+            raise RuntimeError("the executor process did not report its stream")
+        stream = executor_conn.recv()
+        times = stream.publish_times_s
         maps = (client.occupancy.seq - maps_before) if perception_hz > 0 and client.occupancy is not None else 0
         for trial in range(drops if perception_hz > 0 else 0):
             delay = _drop_trial(client, position, box_on, box_since, trial)
@@ -275,14 +299,16 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
                 helper.wait(timeout=30)
             else:
                 helper.join(timeout=10)
-        stop.set()
-        spinner.join(timeout=5.0)
+        if executor.is_alive():
+            executor_conn.send("stop")
+            executor.join(timeout=10.0)
+        if executor.is_alive():
+            executor.terminate()
         robot_stop.set()
         robot_thread.join()
         sub.undeclare()
         client.close()
-        node.close()
-        for session in (client_session, node_session, router):
+        for session in (client_session, router):
             session.close()
     nominal_s = 1.0 / cfg.executor.rate_hz
     periods = np.diff(times)
@@ -293,6 +319,7 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
             "p50": float(np.percentile(error_ms, 50)), "p99": float(np.percentile(error_ms, 99)),
             "max": float(error_ms.max()), "missed": int(np.sum(periods > 2 * nominal_s)),
             "max_at_s": float(times[int(np.argmax(error_ms))] - times[0]),
+            "late_tables": len(stream.late_s), "late_ms": [round(x * 1e3, 1) for x in stream.late_s],
             "mean_period_ms": float(periods.mean() * 1e3)}
 
 
@@ -348,10 +375,11 @@ def main(args: argparse.Namespace) -> int:
               "period_error_ms": {k: periods[k] for k in ("p50", "p99", "max")}, "missed": periods["missed"],
               "setpoints": periods["setpoints"], "executes": periods["executes"], "max_at_s": periods["max_at_s"],
               "mean_period_ms": periods["mean_period_ms"],
+              "late_tables": periods["late_tables"], "late_ms": periods["late_ms"],
               "perception_hz": args.perception_hz, "perception_maps_hz": periods["perception_maps_hz"],
               "drop_stop": _drop_summary(periods),
               "duration_ratio_vs_toppra": ratios,
-              "method": "period: time.monotonic() after each setpoint put in the executor's spin loop (same process); "
+              "method": "period: time.monotonic() after each setpoint put in the executor's setpoint stream process; "
                         "ratio: time_parameterize duration / TOPP-RA (vel+acc, cubic spline) duration"}
     print(f"rate {report['rate_hz']:.0f} Hz for {args.seconds:.0f} s: {periods['setpoints']} setpoints, "
           f"{periods['executes']} executes (each preempting the last)")
@@ -364,6 +392,8 @@ def main(args: argparse.Namespace) -> int:
               f"frame showing it [ms]: p50 {drop['p50']}  p95 {drop['p95']}  max {drop['max']}")
     print(f"period error [ms]: p50 {periods['p50']:.3f}  p99 {periods['p99']:.3f}  max {periods['max']:.3f}  "
           f"missed (> 2x period) {periods['missed']}")
+    print(f"trajectories handed to the stream after their start time: {periods['late_tables']} "
+          f"(late by [ms]: {periods['late_ms'][:20]})")
     print(f"duration vs TOPP-RA over {ratios['paths']} paths: median {ratios['median']:.3f}  max {ratios['max']:.3f}  "
           f"min {ratios['min']:.3f}  (our max deviation {ratios['max_path_deviation_rad']:.4f} rad)")
     if args.json is not None:

@@ -68,9 +68,13 @@ class ExecutorConfig:
     """Watchdog: how far back setpoints count for the tracking error (the loop's latency) [s]."""
     busy_wait_s: float = 0.0
     """The streaming loop polls the clock for this long before each tick instead of sleeping [s]."""
-    realtime_priority: int = 0
-    """SCHED_FIFO priority (1-99) of the streaming loop's thread; 0 leaves it at normal priority.
-    Needs CAP_SYS_NICE; without it the executor logs a warning and runs normally."""
+    realtime_priority: int = 50
+    """SCHED_FIFO priority (1-99) of the setpoint stream's loop; 0 leaves it at normal priority.
+    Needs CAP_SYS_NICE or an RLIMIT_RTPRIO that allows it (`ulimit -r`, compose `ulimits:
+    rtprio`); without either the stream logs a warning and runs at normal priority."""
+    command_lead_s: float = 0.01
+    """A new trajectory (execute, stop, replan) takes over this long after the command: the time
+    to sample it and hand it to the setpoint stream's process, so the switch is exact [s]."""
     monitor_path: bool = True
     """Re-check the rest of an executing path against every new occupancy map; a new obstacle on
     it stops the arm (and replans when the request asks for it)."""
@@ -98,6 +102,7 @@ class ExecutorConfig:
         require(self.max_path_deviation_rad >= 0,
                 f"executor.max_path_deviation_rad must be >= 0, got {self.max_path_deviation_rad}")
         require(0 <= self.realtime_priority <= 99, f"executor.realtime_priority must be in [0, 99], got {self.realtime_priority}")
+        require(0 < self.command_lead_s <= 0.5, f"executor.command_lead_s must be in (0, 0.5], got {self.command_lead_s}")
         require(self.path_check_rate_hz > 0, f"executor.path_check_rate_hz must be > 0, got {self.path_check_rate_hz}")
         require(self.replan_attempts >= 1, f"executor.replan_attempts must be >= 1, got {self.replan_attempts}")
         require(self.replan_timeout_s > 0, f"executor.replan_timeout_s must be > 0, got {self.replan_timeout_s}")

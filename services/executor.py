@@ -1,7 +1,9 @@
 """Executor service: `executor/execute` and `executor/stop` queries, setpoints at the configured rate.
 
-An execute while moving preempts (blends from the commanded state); the streaming loop also
-runs the watchdog (stale joint states, tracking error) on every cycle. A second thread keeps
+The state machine lives here; the setpoints stream from a process of their own
+(`setpoint_stream`), which plays each trajectory the machine starts, sampled on its time grid.
+An execute while moving preempts (blends from the commanded state). The service's loop runs
+the watchdog (stale joint states, tracking error) and publishes status. A second thread keeps
 the rest of the executing path checked against the newest occupancy map (on every map and
 at `path_check_rate_hz`): a new obstacle on it stops the arm smoothly, then either ends the
 execution with PATH_BLOCKED or, when the request asked to replan, asks the planner for a new
@@ -11,8 +13,9 @@ path from the rest state to the same goal and continues under the same trajector
 from __future__ import annotations
 
 import dataclasses
+import gc
 import logging
-import os
+import queue
 import sys
 import threading
 import time
@@ -25,7 +28,7 @@ import zenoh
 
 from robonav.pipeline.joint_order import reorder_to_robot
 from robonav.pipeline.messages import (ErrorReply, ExecuteRequest, ExecuteResponse, ExecutorPath, ExecutorStatus,
-                                       JointState, Occupancy, PlanRequest, PlanResponse, Setpoint, StopRequest,
+                                       JointState, Occupancy, PlanRequest, PlanResponse, StopRequest,
                                        StopResponse)
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.trajectory.execution import PATH_BLOCKED, ExecutionStateMachine, Limits, WatchdogConfig
@@ -37,11 +40,14 @@ from robonav.services.common import (Node, declare_latched_publisher, declare_la
                                      guarded_subscriber, decode_request, reply_ok, run_service)
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
+from robonav.services.setpoint_stream import SetpointStream, StreamStats
 
 log = logging.getLogger("robonav.executor")
 
-REALTIME_SWITCH_INTERVAL_S = 2e-4
-"""Python's thread switch interval in a real-time executor process [s]."""
+SWITCH_INTERVAL_S = 5e-4
+"""Python's thread switch interval in the executor's process [s]."""
+SUPERVISE_PERIOD_S = 0.005
+"""The service loop (watchdog, state changes, status) runs every this [s]; setpoints do not wait on it."""
 
 
 @dataclass(frozen=True)
@@ -57,17 +63,24 @@ class _Execution:
     acceleration_scaling: float | None
     generation: int
     """Bumped by every accepted request and replan: the monitor takes a new baseline map."""
+    baseline_map: bytes | None
+    """The newest occupancy message when the path was accepted (undecoded), or None: only voxels
+    new since count. Taken then, not when the monitor next runs, which may be after an
+    obstacle that appeared meanwhile is already in a newer map."""
 
 
 class ExecutorNode(Node):
-    def __init__(self, cfg: RobonavConfig, session: zenoh.Session) -> None:
+    def __init__(self, cfg: RobonavConfig, session: zenoh.Session, *, keep_stream_times: int = 0) -> None:
+        """Args: keep_stream_times: the setpoint stream keeps this many publish times for
+        `stream_stats` (benchmarks)."""
         self.cfg = cfg
         self.robot = RobotModel.from_config(cfg.robot)
-        self.machine = ExecutionStateMachine(Limits(
+        limits = Limits(
             velocity=np.asarray(self.robot.velocity_limits, dtype=float),
             acceleration=np.asarray(self.robot.acceleration_limits, dtype=float),
             jerk=np.asarray(self.robot.jerk_limits, dtype=float),
-        ))
+        )
+        self.machine = ExecutionStateMachine(limits)
         self._lock = threading.Lock()
         self._joint_state: JointState | None = None
         self._measured_q: np.ndarray | None = None
@@ -76,17 +89,16 @@ class ExecutorNode(Node):
         """time.monotonic() when it arrived [s]."""
         self._watchdog = WatchdogConfig(cfg.executor.joint_state_timeout_s, cfg.executor.max_tracking_error_rad,
                                         cfg.executor.tracking_latency_s)
-        self.publish_times_s: list[float] | None = None
-        """When a list, spin appends time.monotonic() after each setpoint put (for `robonav bench executor`)."""
         keys = Keys(cfg.cell)
-        # A setpoint in motion is superseded a period later: under congestion it is dropped
-        # rather than blocking the 1 kHz loop on a slow subscriber (a blocking put stalled the
-        # loop for up to 5 ms). The last setpoint of a motion (at rest) and status must arrive:
-        # a lost one leaves the arm short of the goal while the status says done.
-        self._setpoint_pub = session.declare_publisher(keys.setpoint, congestion_control=zenoh.CongestionControl.DROP,
-                                                       priority=zenoh.Priority.REAL_TIME, express=True)
-        self._final_setpoint_pub = session.declare_publisher(keys.setpoint, congestion_control=zenoh.CongestionControl.BLOCK,
-                                                             priority=zenoh.Priority.REAL_TIME, express=True)
+        self._stream = SetpointStream(cfg.zenoh, keys.setpoint, tuple(self.robot.joint_names), rate_hz=cfg.executor.rate_hz,
+                                      busy_wait_s=cfg.executor.busy_wait_s,
+                                      realtime_priority=cfg.executor.realtime_priority, limits=limits,
+                                      keep_times=keep_stream_times)
+        self._streamed_revision = 0
+        self._to_stream: queue.SimpleQueue[tuple[int, JointTrajectory | None, float, str] | None] = queue.SimpleQueue()
+        self._feeder = threading.Thread(target=self._feed_stream, name="executor-stream-feeder", daemon=True)
+        self._feeder.start()
+        # Status must arrive: a lost one could leave a client waiting for a state it missed.
         self._status_pub = session.declare_publisher(keys.status, congestion_control=zenoh.CongestionControl.BLOCK)
         # Latched, so a viewer that starts late still sees the last path (plan replies go only to the asker).
         self._path_pub = declare_latched_publisher(session, keys.executor_path)
@@ -99,7 +111,9 @@ class ExecutorNode(Node):
         self._blocked_stamp: float | None = None
         self._map_lock = threading.Lock()
         self._map_wire: bytes | None = None
-        """The newest occupancy message, undecoded: the monitor decodes only what it uses."""
+        """The newest occupancy message the monitor has not taken yet, undecoded: it decodes only what it uses."""
+        self._newest_map_wire: bytes | None = None
+        """The newest occupancy message (a new path's baseline)."""
         self._map_arrived = threading.Event()
         self._guard = PathGuard(self.robot, padding_m=cfg.robot.padding_m, inflation_m=cfg.perception.inflation_m,
                                 edge_resolution_rad=cfg.planner.edge_resolution_rad)
@@ -112,6 +126,11 @@ class ExecutorNode(Node):
         self._monitor = threading.Thread(target=self._monitor_loop, name="executor-path-monitor", daemon=True)
         if cfg.executor.monitor_path:
             self._monitor.start()
+        # Hand-overs to the stream must happen within `command_lead_s`: a shorter switch interval
+        # gets the feeder the GIL sooner, and frozen start-up objects (robot model, meshes, FCL)
+        # keep the cyclic collector's full passes short.
+        sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
+        gc.freeze()
         self._queryables = [
             session.declare_queryable(keys.execute, guarded_queryable(self.handle_execute, "executor")),
             session.declare_queryable(keys.stop, guarded_queryable(self.handle_stop, "executor")),
@@ -130,7 +149,7 @@ class ExecutorNode(Node):
 
     def on_occupancy(self, sample: zenoh.Sample) -> None:
         with self._map_lock:
-            self._map_wire = sample.payload.to_bytes()
+            self._map_wire = self._newest_map_wire = sample.payload.to_bytes()
         self._map_arrived.set()
 
     def handle_execute(self, query: zenoh.Query) -> None:
@@ -147,7 +166,8 @@ class ExecutorNode(Node):
                                              request.max_acceleration_scaling_factor)
         trajectory_id = request.trajectory_id or uuid.uuid4().hex[:12]
         with self._lock:
-            commanded = self.machine.commanded_state(time.monotonic())
+            switch_s = self._switch_time()
+            commanded = self.machine.commanded_state(switch_s)
             if commanded is not None:
                 offset = float(np.max(np.abs(path[0] - commanded[0])))
                 if offset > self.cfg.executor.preempt_tolerance_rad:
@@ -155,13 +175,15 @@ class ExecutorNode(Node):
                                         f"path starts {offset:.3f} rad from the commanded state of the moving arm "
                                         f"(tolerance {self.cfg.executor.preempt_tolerance_rad} rad)", {"offset_rad": offset})
             # One ruckig blend from the commanded state (tens of microseconds) under the lock.
-            preempted = self.machine.start(trajectory, trajectory_id, time.monotonic())
-            duration_s = self.machine.status(time.monotonic()).duration_s
+            preempted = self.machine.start(trajectory, trajectory_id, switch_s)
+            self._stream_latest()
+            duration_s = self.machine.status(switch_s).duration_s
             self._generation += 1
             self._execution = _Execution(
                 trajectory_id, path, request.replan,
                 request.replan_attempts or self.cfg.executor.replan_attempts,
-                request.max_velocity_scaling_factor, request.max_acceleration_scaling_factor, self._generation)
+                request.max_velocity_scaling_factor, request.max_acceleration_scaling_factor, self._generation,
+                self._baseline_map())
             self._blocked_after_frame_s = self._blocked_stamp = None
         log.info("executing %s: %d waypoints, %.2f s%s", trajectory_id, len(path), duration_s,
                  " (preempted the running trajectory)" if preempted else "")
@@ -207,15 +229,29 @@ class ExecutorNode(Node):
                     self._replan(execution)
                 elif state == "executing" and commanded is not None:
                     if baseline_generation != execution.generation:
-                        # The path was planned on (about) the newest map: only voxels new since
-                        # count. Without a map yet, the first one is the baseline.
-                        if occupancy is not None:
-                            self._guard.start(occupancy.occupied_centers_m, occupancy.resolution_m)
+                        # The path was planned on (about) the newest map when it was accepted:
+                        # only voxels new since count. Without a map then, the first one is the baseline.
+                        baseline = self._decoded(execution.baseline_map) or occupancy
+                        if baseline is not None:
+                            self._guard.start(baseline.occupied_centers_m, baseline.resolution_m)
                             baseline_generation = execution.generation
-                    else:
+                            if occupancy is not None and occupancy is not baseline:
+                                self._guard.update_map(occupancy.occupied_centers_m, occupancy.resolution_m)
+                    if baseline_generation == execution.generation and occupancy is not None:
                         self._check_rest_of_path(execution, commanded[0], occupancy)
             except Exception:  # noqa: BLE001 - the monitor must outlive any one bad check
                 log.exception("path monitor: check failed")
+
+    @staticmethod
+    def _decoded(wire: bytes | None) -> Occupancy | None:
+        try:
+            return Occupancy.from_wire(wire) if wire else None
+        except ValueError:
+            return None  # already reported when it arrived
+
+    def _baseline_map(self) -> bytes | None:
+        with self._map_lock:
+            return self._newest_map_wire
 
     def _check_rest_of_path(self, execution: _Execution, q_commanded: np.ndarray, occupancy: Occupancy) -> None:
         blocked_at = self._guard.blocked_state(execution.path, q_commanded)
@@ -228,13 +264,14 @@ class ExecutorNode(Node):
             delay_s = self._blocked_stamp - occupancy.stamp
             self._blocked_after_frame_s = delay_s
             if execution.replan and execution.replans_left > 0:
-                self.machine.stop(time.monotonic(), scaling=self.cfg.executor.acceleration_scaling, replan=True)
+                self.machine.stop(self._switch_time(), scaling=self.cfg.executor.acceleration_scaling, replan=True)
                 outcome = "stopping to replan"
             else:
-                self.machine.fault(time.monotonic(), PATH_BLOCKED,
+                self.machine.fault(self._switch_time(), PATH_BLOCKED,
                                    f"a new obstacle blocks the rest of '{execution.trajectory_id}' "
                                    f"(map {occupancy.seq}){'; no replans left' if execution.replan else ''}")
                 outcome = "stopping (replan not requested)" if not execution.replan else "stopping (no replans left)"
+            self._stream_latest()
         log.warning("%s: the rest of the path is blocked in map %d, %.0f ms after its newest frame: %s",
                     execution.trajectory_id, occupancy.seq, delay_s * 1e3, outcome)
 
@@ -280,10 +317,11 @@ class ExecutorNode(Node):
         with self._lock:
             if self._execution is not execution or self.machine.state != "replanning":
                 return  # a new request or a stop came in while planning
-            self.machine.start(trajectory, execution.trajectory_id, time.monotonic(), replanned=True)
+            self.machine.start(trajectory, execution.trajectory_id, self._switch_time(), replanned=True)
+            self._stream_latest()
             self._generation += 1
             self._execution = dataclasses.replace(execution, path=path, replans_left=replans_left,
-                                                  generation=self._generation)
+                                                  generation=self._generation, baseline_map=self._baseline_map())
             duration_s = trajectory.duration_s
         log.info("%s: replanned (%d waypoints, %.2f s)", execution.trajectory_id, len(path), duration_s)
         self._path_pub.put(ExecutorPath(stamp=time.time(), trajectory_id=execution.trajectory_id,
@@ -308,36 +346,58 @@ class ExecutorNode(Node):
     def handle_stop(self, query: zenoh.Query) -> None:
         request = decode_request(query, StopRequest)
         with self._lock:
-            self.machine.stop(time.monotonic(), emergency=request.emergency,
+            self.machine.stop(self._switch_time(), emergency=request.emergency,
                               scaling=self.cfg.executor.acceleration_scaling)
+            self._stream_latest()
             state = self.machine.state
         reply_ok(query, StopResponse(state=state))
 
+    # --- handing trajectories to the setpoint stream ----------------------------------------
+
+    def _switch_time(self) -> float:
+        """When a trajectory started now takes over: the stream's first tick after the lead that
+        sampling it and handing it over needs."""
+        return self._stream.next_tick(time.monotonic() + self.cfg.executor.command_lead_s)
+
+    def _stream_latest(self) -> None:
+        """Under `_lock`, after any call that may have replaced the machine's trajectory."""
+        if self.machine.revision != self._streamed_revision:
+            self._streamed_revision = self.machine.revision
+            self._to_stream.put((self.machine.revision, self.machine.trajectory, self.machine.started_at_s,
+                                 self.machine.trajectory_id))
+
+    def _feed_stream(self) -> None:
+        """Sample each new trajectory on the stream's grid and send it, newest first."""
+        while True:
+            item = self._to_stream.get()
+            while item is not None and not self._to_stream.empty():
+                item = self._to_stream.get()  # only the newest trajectory matters
+            if item is None:
+                return
+            _, trajectory, start_s, trajectory_id = item
+            if trajectory is None:
+                continue
+            self._stream.play(trajectory, trajectory_id, start_s)
+
+    def stream_stats(self) -> StreamStats:
+        """The setpoint stream's counters (and publish times when kept)."""
+        return self._stream.stats()
+
     def spin(self, stop: threading.Event) -> None:
-        """Stream setpoints on an absolute schedule so periods do not drift."""
-        _real_time_priority(self.cfg.executor.realtime_priority)
-        period_s = 1.0 / self.cfg.executor.rate_hz
+        """Watchdog, state changes and status every SUPERVISE_PERIOD_S; setpoints stream elsewhere."""
         status_period_s = 1.0 / self.cfg.executor.status_rate_hz
-        names = self.robot.joint_names
-        next_tick = time.monotonic()
-        next_status = next_tick
+        next_status = time.monotonic()
         published_state = ""
-        while not stop.is_set():
+        while not stop.wait(SUPERVISE_PERIOD_S):
             now = time.monotonic()
             with self._lock:
-                tripped = self.machine.check_watchdog(now, self._measured_q, now - self._measured_at_s, self._watchdog)
-                sample = self.machine.tick(now)
-                final = not self.machine.busy  # this sample ended a motion: it is the rest state
+                tripped = self.machine.check_watchdog(self._switch_time(), self._measured_q, now - self._measured_at_s,
+                                                      self._watchdog)
+                self._stream_latest()
+                self.machine.tick(now)
                 # A state change is published at once, not at the next status period.
                 due = now >= next_status or self.machine.state != published_state
                 status = self.machine.status(now) if due else None
-            if sample is not None:
-                (self._final_setpoint_pub if final else self._setpoint_pub).put(Setpoint(
-                    stamp=time.time(), trajectory_id=sample.trajectory_id, names=names,
-                    position=sample.position, velocity=sample.velocity, acceleration=sample.acceleration,
-                ).to_wire())
-                if self.publish_times_s is not None:
-                    self.publish_times_s.append(time.monotonic())
             if tripped is not None:
                 log.error("watchdog: %s", self.machine.error_message)
             if status is not None:
@@ -346,18 +406,9 @@ class ExecutorNode(Node):
                 self._status_pub.put(ExecutorStatus(stamp=time.time(), blocked_after_frame_s=self._blocked_after_frame_s,
                                                     blocked_stamp=self._blocked_stamp,
                                                     **status.__dict__).to_wire())
-            next_tick += period_s
-            if next_tick < now - period_s:  # fell behind (e.g. the machine stalled): resync, do not burst
-                next_tick = now
-            # Sleep wakes up late by 0.05-1 ms; the last `busy_wait_s` before a tick is spent
-            # polling the clock instead (yielding the GIL), trading CPU for period accuracy.
-            delay = next_tick - time.monotonic() - self.cfg.executor.busy_wait_s
-            if delay > 0:
-                time.sleep(delay)
-            while time.monotonic() < next_tick:
-                time.sleep(0)
-        with self._lock:
-            self.machine.stop(time.monotonic(), emergency=True)
+            if not self._stream.alive:
+                log.error("the setpoint stream process died: stopping the executor")
+                return
 
     def close(self) -> None:
         self._monitor_stop.set()
@@ -369,31 +420,11 @@ class ExecutorNode(Node):
         if self._map_sub is not None:
             self._map_sub.undeclare()
         self._sub.undeclare()
-        self._setpoint_pub.undeclare()
-        self._final_setpoint_pub.undeclare()
+        self._to_stream.put(None)
+        self._feeder.join(timeout=5.0)
+        self._stream.close()  # it brakes a moving arm to rest first
         self._status_pub.undeclare()
         self._path_pub.undeclare()
-
-
-def _real_time_priority(priority: int) -> None:
-    """Run the calling thread (the streaming loop) under SCHED_FIFO at `priority` (0: leave it).
-
-    What robot control loops do (ros2_control, Franka's libfranka): the scheduler then never
-    makes the loop wait for ordinary threads and processes, which on a busy 2-core machine
-    otherwise costs it whole milliseconds. It needs CAP_SYS_NICE (root, or
-    `docker run --cap-add SYS_NICE`); without it the loop runs at normal priority.
-    """
-    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
-        return
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))  # 0: this thread on Linux
-        # The loop also needs the GIL back quickly: other threads (queries, the path monitor)
-        # otherwise keep it for up to Python's default 5 ms switch interval.
-        sys.setswitchinterval(min(sys.getswitchinterval(), REALTIME_SWITCH_INTERVAL_S))
-        log.info("setpoint loop runs under SCHED_FIFO priority %d", priority)
-    except (PermissionError, OSError) as exc:
-        log.warning("setpoint loop stays at normal priority: SCHED_FIFO refused (%s); "
-                    "grant CAP_SYS_NICE or set executor.realtime_priority: 0", exc)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -101,6 +101,8 @@ class ExecutionStateMachine:
         self._replan_after_stop = False
         self.replans = 0
         """Replanned paths started under the current trajectory id."""
+        self.revision = 0
+        """Bumped whenever a new trajectory (a start, a blend, a stop ramp) replaces the running one."""
 
     @property
     def busy(self) -> bool:
@@ -110,6 +112,16 @@ class ExecutionStateMachine:
     def last_setpoint(self) -> SetpointSample | None:
         """The last sample `tick` returned (the commanded state), or None."""
         return self._last
+
+    @property
+    def trajectory(self) -> SampledTrajectory | None:
+        """What streams (from `started_at_s`), or None."""
+        return self._trajectory
+
+    @property
+    def started_at_s(self) -> float:
+        """When `trajectory` starts, on the caller's clock [s]."""
+        return self._started_at_s
 
     def commanded_state(self, now_s: float) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """(q, qd, qdd) the running trajectory commands at `now_s`, or None when nothing streams."""
@@ -136,6 +148,7 @@ class ExecutionStateMachine:
             trajectory = blend_from_state(trajectory, *current)
         self._trajectory = trajectory
         self._started_at_s = now_s
+        self.revision += 1
         self.trajectory_id = trajectory_id
         self.state = "executing"
         self.error_code = ""
@@ -177,6 +190,7 @@ class ExecutionStateMachine:
             synchronize=synchronize,
         )
         self._started_at_s = now_s
+        self.revision += 1
         self.state = "stopping"
 
     def fault(self, now_s: float, code: str, message: str) -> None:

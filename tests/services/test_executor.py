@@ -64,8 +64,9 @@ class FakeRobot:
 def executor() -> Iterator[tuple[ExecutorNode, RobonavClient, FakeRobot]]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
-    cfg = dataclasses.replace(CONFIG, executor=dataclasses.replace(CONFIG.executor, joint_state_timeout_s=0.2))
-    node_session = open_session(ZenohConfig(connect=(endpoint,)))
+    cfg = dataclasses.replace(CONFIG, executor=dataclasses.replace(CONFIG.executor, joint_state_timeout_s=0.2),
+                              zenoh=ZenohConfig(connect=(endpoint,)))
+    node_session = open_session(cfg.zenoh)
     node = ExecutorNode(cfg, node_session)
     stop = threading.Event()
     spinner = threading.Thread(target=node.spin, args=(stop,), daemon=True)

@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 
-from robonav.pipeline.messages import (ErrorReply, ExecuteResponse, ExecutorStatus, PlanResponse, SimObjectsRequest,
-                                       SimObjectsResponse)
+from robonav.pipeline.messages import (ErrorReply, ExecuteResponse, ExecutorStatus, PerceptionClearRequest,
+                                       PerceptionClearResponse, PlanResponse, SimObjectsRequest, SimObjectsResponse)
 from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.scene import SceneObject
@@ -87,6 +87,24 @@ def _drop_box_on_the_way(client: RobonavClient, goal: np.ndarray, *, replan: boo
         assert contacts.contact_count == 0, contacts.pairs
     finally:
         _objects(client, SimObjectsRequest(operation="remove", names=("dropped",)))
+        # Later tests share the stack: its map must not keep the box. Frames rendered before the
+        # removal may still be on their way (the sim's latency model): clear after they are in.
+        time.sleep(1.0)
+        cleared_at = time.time()
+        cleared = client.query(client.keys.perception_clear, PerceptionClearRequest(), PerceptionClearResponse, 5.0)
+        assert isinstance(cleared, PerceptionClearResponse), cleared
+        # Render workers may still show the box in a frame or two after its removal: wait until
+        # the map has nothing left where it was.
+        low, high = np.array(intruder.target_m) - 0.08, np.array(intruder.target_m) + 0.08
+
+        def box_forgotten() -> bool:
+            occupancy = client.occupancy
+            if occupancy is None or occupancy.stamp <= cleared_at:
+                return False
+            centres = occupancy.occupied_centers_m
+            return not np.any(np.all((centres >= low) & (centres <= high), axis=1))
+
+        assert client.wait_for(box_forgotten, 10.0), "the removed box stays in the map"
     return status, plan.path
 
 

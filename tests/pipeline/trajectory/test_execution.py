@@ -47,8 +47,12 @@ def test_stop_is_continuous_and_ends_at_rest() -> None:
     t_stop = trajectory.duration_s * 0.3
     before = machine.tick(t_stop)
     assert before is not None
+    revision = machine.revision
     machine.stop(t_stop)
     assert machine.state == "stopping"
+    # The stop ramp is a new trajectory from t_stop: whoever streams it must hear of it.
+    assert machine.revision == revision + 1 and machine.started_at_s == t_stop
+    assert machine.trajectory is not None and machine.trajectory is not trajectory
     after = machine.tick(t_stop)
     assert after is not None
     for a, b in ((before.position, after.position), (before.velocity, after.velocity),
