@@ -320,6 +320,7 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
             "max": float(error_ms.max()), "missed": int(np.sum(periods > 2 * nominal_s)),
             "max_at_s": float(times[int(np.argmax(error_ms))] - times[0]),
             "late_tables": len(stream.late_s), "late_ms": [round(x * 1e3, 1) for x in stream.late_s],
+            "starved": stream.starved,
             "mean_period_ms": float(periods.mean() * 1e3)}
 
 
@@ -375,7 +376,7 @@ def main(args: argparse.Namespace) -> int:
               "period_error_ms": {k: periods[k] for k in ("p50", "p99", "max")}, "missed": periods["missed"],
               "setpoints": periods["setpoints"], "executes": periods["executes"], "max_at_s": periods["max_at_s"],
               "mean_period_ms": periods["mean_period_ms"],
-              "late_tables": periods["late_tables"], "late_ms": periods["late_ms"],
+              "late_tables": periods["late_tables"], "late_ms": periods["late_ms"], "starved": periods["starved"],
               "perception_hz": args.perception_hz, "perception_maps_hz": periods["perception_maps_hz"],
               "drop_stop": _drop_summary(periods),
               "duration_ratio_vs_toppra": ratios,
@@ -393,7 +394,7 @@ def main(args: argparse.Namespace) -> int:
     print(f"period error [ms]: p50 {periods['p50']:.3f}  p99 {periods['p99']:.3f}  max {periods['max']:.3f}  "
           f"missed (> 2x period) {periods['missed']}")
     print(f"trajectories handed to the stream after their start time: {periods['late_tables']} "
-          f"(late by [ms]: {periods['late_ms'][:20]})")
+          f"(late by [ms]: {periods['late_ms'][:20]}); braked for want of the rest of one: {periods['starved']}")
     print(f"duration vs TOPP-RA over {ratios['paths']} paths: median {ratios['median']:.3f}  max {ratios['max']:.3f}  "
           f"min {ratios['min']:.3f}  (our max deviation {ratios['max_path_deviation_rad']:.4f} rad)")
     if args.json is not None:
