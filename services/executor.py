@@ -95,7 +95,7 @@ class ExecutorNode(Node):
                                       realtime_priority=cfg.executor.realtime_priority, limits=limits,
                                       keep_times=keep_stream_times)
         self._streamed_revision = 0
-        self._to_stream: queue.SimpleQueue[tuple[int, JointTrajectory | None, float, str] | None] = queue.SimpleQueue()
+        self._to_stream: queue.SimpleQueue[tuple[JointTrajectory | None, float, str] | None] = queue.SimpleQueue()
         self._feeder = threading.Thread(target=self._feed_stream, name="executor-stream-feeder", daemon=True)
         self._feeder.start()
         # Status must arrive: a lost one could leave a client waiting for a state it missed.
@@ -363,21 +363,17 @@ class ExecutorNode(Node):
         """Under `_lock`, after any call that may have replaced the machine's trajectory."""
         if self.machine.revision != self._streamed_revision:
             self._streamed_revision = self.machine.revision
-            self._to_stream.put((self.machine.revision, self.machine.trajectory, self.machine.started_at_s,
-                                 self.machine.trajectory_id))
+            self._to_stream.put((self.machine.trajectory, self.machine.started_at_s, self.machine.trajectory_id))
 
     def _feed_stream(self) -> None:
-        """Sample each new trajectory on the stream's grid and send it, newest first."""
-        while True:
-            item = self._to_stream.get()
-            while item is not None and not self._to_stream.empty():
-                item = self._to_stream.get()  # only the newest trajectory matters
-            if item is None:
-                return
-            _, trajectory, start_s, trajectory_id = item
-            if trajectory is None:
-                continue
-            self._stream.play(trajectory, trajectory_id, start_s)
+        """Sample each new trajectory on the stream's grid and send it, in order.
+
+        None of them is skipped, not even the older of two quick ones: the newer was computed from the older's
+        commanded state, so the stream must play the older until the newer takes over."""
+        while (item := self._to_stream.get()) is not None:
+            trajectory, start_s, trajectory_id = item
+            if trajectory is not None:
+                self._stream.play(trajectory, trajectory_id, start_s)
 
     def stream_stats(self) -> StreamStats:
         """The setpoint stream's counters (and publish times when kept)."""
