@@ -308,8 +308,10 @@ class _Loop:
                         active = self._brake(active, tick)
                         rows, row = len(active.position), 0
                     last = row == rows - 1
+                    # The stamp is the moment the setpoint is for (its tick, as Unix time), not
+                    # when it was put: a consumer can place it in time even when it left late.
                     (final if last else moving).put(Setpoint(
-                        stamp=time.time(), trajectory_id=active.trajectory_id, names=spec.joint_names,
+                        stamp=tick + (time.time() - time.monotonic()), trajectory_id=active.trajectory_id, names=spec.joint_names,
                         position=active.position[row], velocity=active.velocity[row],
                         acceleration=active.acceleration[row]).to_wire())
                     if self.published < len(self.times):
