@@ -263,6 +263,21 @@ class SphereBroadPhase:
         """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free."""
         return bool(_state_suspect(np.array(q, dtype=np.float64), *self._args))
 
+    def self_suspect(self, q: FloatArray) -> bool:
+        """True if spheres of a self-collision pair touch at `q` (dof,) (the world ignored).
+
+        Numpy, not compiled: for occasional probes (`CollisionWorld.sphere_self_overflag`)."""
+        poses = self._robot.link_pose_stack(q)
+        links = self._sphere_link
+        world = np.einsum("sij,sj->si", poses[links, :3, :3], self._centers_link) + poses[links, :3, 3]
+        for la, lb in self._self_pairs:
+            a = slice(self._link_start[la], self._link_start[la + 1])
+            b = slice(self._link_start[lb], self._link_start[lb + 1])
+            gap = np.linalg.norm(world[a, None, :] - world[None, b, :], axis=2)
+            if np.any(gap <= self._radii_self[a, None] + self._radii_self[None, b] + _CONTACT_EPS_M):
+                return True
+        return False
+
     def edge_suspects(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float, *,
                       first_only: bool = False) -> tuple[np.ndarray, int]:
         """Suspect states of the straight segment, in `CollisionWorld.motion_valid` order.

@@ -15,7 +15,8 @@ callbacks cannot (they receive anonymous copies of the objects).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import weakref
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -31,6 +32,9 @@ from robonav.pipeline.transforms import FloatArray
 
 OCCUPANCY = "occupancy"
 """Name reported for contacts with the occupancy octree."""
+SELF_OVERFLAG_PROBES = 64
+"""Random states `sphere_self_overflag` measures on (seeded, so the figure is reproducible)."""
+_self_overflag: weakref.WeakKeyDictionary[RobotModel, float] = weakref.WeakKeyDictionary()
 
 
 class CollisionWorld:
@@ -443,6 +447,65 @@ class CollisionWorld:
             if self._check(a + (b - a) * (k / steps), first_only=True):
                 return False
         return not self._check(a, first_only=True)
+
+    @property
+    def spheres_usable(self) -> bool:
+        """Whether `state_free_by_spheres` / `motion_free_by_spheres` use the sphere model (else
+        they are `in_collision` / `motion_valid`)."""
+        return self._broad_phase_usable()
+
+    def sphere_self_overflag(self) -> float:
+        """Share of self-collision-free random states at which the spheres of a self-collision
+        pair touch anyway (0 when the sphere model is not used). Measured once per robot.
+
+        Near 1 when a config checks a pair whose spheres always touch although the hulls do not
+        (e.g. open fingers not allowed to touch): every state is then suspect, and the
+        sphere-first search can find nothing."""
+        if not self._broad_phase_usable():
+            return 0.0
+        cached = _self_overflag.get(self._robot)
+        if cached is None:
+            rng = np.random.default_rng(0)
+            robot = self._robot
+            states = rng.uniform(robot.lower_limits_rad, robot.upper_limits_rad, size=(SELF_OVERFLAG_PROBES, robot.dof))
+            pairs = self.self_collision_pairs
+            free = [q for q in states if not self.link_pairs_in_collision(q, pairs)]
+            cached = sum(self._broad_phase.self_suspect(q) for q in free) / max(len(free), 1)
+            _self_overflag[self._robot] = cached
+        return cached
+
+    def state_free_by_spheres(self, q: FloatArray, exact: Callable[[FloatArray], bool]) -> bool:
+        """Conservative validity of `q`: free when its spheres touch nothing; when they do, FCL
+        decides only if `exact(q)`, else the state counts as in collision.
+
+        Sound (a state it calls free is FCL-free) and, away from where `exact` holds, FCL-free:
+        the planner's fast mode, which gives up states the spheres over-cover for speed."""
+        if not self._broad_phase_usable():
+            return not self.in_collision(q)
+        q = self._robot.validate_q(q)
+        if not self._broad_phase.state_suspect(q):
+            return True
+        return bool(exact(q)) and not self._check(q, first_only=True)
+
+    def motion_free_by_spheres(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float,
+                               exact: Callable[[FloatArray], bool]) -> bool:
+        """`motion_valid` at the same states, each judged as by `state_free_by_spheres`."""
+        if not self._broad_phase_usable():
+            return self.motion_valid(q_a, q_b, resolution_rad)
+        a = self._robot.validate_q(q_a, "q_a")
+        b = self._robot.validate_q(q_b, "q_b")
+        first, steps = self._broad_phase.edge_suspects(a, b, resolution_rad, first_only=True)
+        if first.size == 0:
+            return True
+        q = a + (b - a) * (first[0] / steps)
+        if not exact(q) or self._check(q, first_only=True):
+            return False
+        suspects, _ = self._broad_phase.edge_suspects(a, b, resolution_rad)
+        for k in suspects[1:]:
+            q = a + (b - a) * (k / steps)
+            if not exact(q) or self._check(q, first_only=True):
+                return False
+        return True
 
     def path_valid(self, path: FloatArray, resolution_rad: float) -> bool:
         """True when every segment of `path` (K, dof), K >= 1, passes `motion_valid`."""

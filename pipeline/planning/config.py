@@ -22,6 +22,11 @@ class PlannerConfig:
     simplify: bool = True
     """Shortcut the raw path (every result is re-validated)."""
     shortcut_iterations: int = 100
+    sphere_first_share: float = 0.5
+    """Share of the budget for the sphere-first search (0: exact search only; 1: sphere-first only)."""
+    sphere_first_exact_radius_rad: float = 0.3
+    """Within this joint-space distance of the start or a goal, the sphere-first search still asks
+    FCL about states the spheres flag [rad]."""
     seed: int = 0
     """Seeds OMPL's sampler once per planner process and the shortcutting per request."""
     occupancy_max_age_s: float = 10.0
@@ -44,6 +49,10 @@ class PlannerConfig:
         require(self.range_rad >= 0, f"planner.range_rad must be >= 0, got {self.range_rad}")
         require(self.edge_resolution_rad > 0, f"planner.edge_resolution_rad must be > 0, got {self.edge_resolution_rad}")
         require(self.shortcut_iterations >= 0, f"planner.shortcut_iterations must be >= 0, got {self.shortcut_iterations}")
+        require(0 <= self.sphere_first_share <= 1,
+                f"planner.sphere_first_share must be in [0, 1], got {self.sphere_first_share}")
+        require(self.sphere_first_exact_radius_rad >= 0,
+                f"planner.sphere_first_exact_radius_rad must be >= 0, got {self.sphere_first_exact_radius_rad}")
         require(self.ik_restarts >= 0, f"planner.ik_restarts must be >= 0, got {self.ik_restarts}")
         require(self.ik_solutions >= 1, f"planner.ik_solutions must be >= 1, got {self.ik_solutions}")
         require(self.lattice_resolution_rad > 0,

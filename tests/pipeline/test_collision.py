@@ -180,6 +180,34 @@ def test_motion_through_block_invalid_around_valid(panda: RobotModel, world: Col
     assert world.path_clearance_m(np.array([start, goal]), 0.05) == 0.0
 
 
+def test_sphere_first_checks_are_sound_and_exact_where_asked() -> None:
+    """States and edges near the block: what the sphere-first checks call free is FCL-free;
+    with `exact` everywhere they are the exact checks; without it they give up some free ones."""
+    # The finger pairs allowed, as in the shipped config: open fingers' spheres touch each other.
+    panda = RobotModel.from_config(RobotConfig(allowed_collision_pairs=(("panda_leftfinger", "panda_rightfinger"),
+                                                                        ("panda_hand", "panda_link6"))))
+    world = CollisionWorld(panda, padding_m=0.01)
+    world.set_objects([BLOCK])
+    rng = np.random.default_rng(5)
+    states = _swing(panda, 0.0) + rng.uniform(-0.6, 0.6, size=(300, panda.dof))
+    states = np.clip(states, panda.lower_limits_rad, panda.upper_limits_rad)
+    exact = np.array([not world.in_collision(q) for q in states])
+    never = np.array([world.state_free_by_spheres(q, lambda _q: False) for q in states])
+    always = np.array([world.state_free_by_spheres(q, lambda _q: True) for q in states])
+    np.testing.assert_array_equal(always, exact)
+    assert np.any(never) and np.all(exact[never])  # sound
+    assert np.any(exact & ~never)  # conservative: some free states are given up
+    fast_free = 0
+    for a in states[::3]:
+        b = np.clip(a + rng.uniform(-0.15, 0.15, size=panda.dof), panda.lower_limits_rad, panda.upper_limits_rad)
+        assert world.motion_free_by_spheres(a, b, 0.02, lambda _q: True) == world.motion_valid(a, b, 0.02)
+        if world.motion_free_by_spheres(a, b, 0.02, lambda _q: False):
+            fast_free += 1
+            assert world.motion_valid(a, b, 0.02)
+    assert fast_free > 0
+    assert world.spheres_usable
+
+
 def test_motion_checks_both_ends(panda: RobotModel, world: CollisionWorld) -> None:
     world.set_objects([BLOCK])
     blocked, free = _swing(panda, 0.0), _swing(panda, 1.0)

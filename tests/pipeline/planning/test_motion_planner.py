@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -12,6 +14,7 @@ from robonav.pipeline.planning.motion_planner import PLANNERS, MotionPlanner, Pl
 from robonav.pipeline.planning.ompl_planners import seed_ompl_once
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.robot_config import RobotConfig
 from robonav.pipeline.scene import SceneObject
 
 RESOLUTION_RAD = 0.02
@@ -46,6 +49,32 @@ def test_every_planner_finds_a_valid_path(setup, planner_id: str) -> None:
     np.testing.assert_array_equal(outcome.path[-1], goal)
     assert outcome.planner_id in PLANNERS
     assert outcome.path_length_rad > 2.0 and outcome.max_joint_step_rad > 0 and outcome.min_clearance_m > 0
+
+
+@pytest.mark.parametrize("share, search", [(1.0, "sphere_first"), (0.0, "exact")])
+def test_sphere_first_and_exact_searches_both_give_valid_paths(setup, share: float, search: str) -> None:
+    _, start, goal = setup
+    # Finger pairs allowed, as in the shipped config (open fingers' spheres always touch).
+    robot = RobotModel.from_config(RobotConfig(
+        fixed_joint_positions={"panda_finger_joint1": 0.04, "panda_finger_joint2": 0.04},
+        allowed_collision_pairs=(("panda_leftfinger", "panda_rightfinger"), ("panda_hand", "panda_link6"))))
+    world = CollisionWorld(robot, padding_m=0.01)
+    world.set_objects([BLOCK])
+    planner = MotionPlanner(robot, world, PlannerConfig(edge_resolution_rad=RESOLUTION_RAD, range_rad=1.0,
+                                                        sphere_first_share=share))
+    outcome = planner.plan(PlanProblem(start, goal, allowed_planning_time_s=5.0, seed=4))
+    assert outcome.status is PlanStatus.SUCCESS, outcome.detail
+    assert outcome.details["search"] == search
+    _assert_valid_path(planner, outcome.path, start)
+    np.testing.assert_array_equal(outcome.path[-1], goal)
+
+
+def test_sphere_first_is_skipped_when_self_collision_spheres_always_touch(setup) -> None:
+    planner, start, goal = setup  # every finger pair checked: their spheres touch in every state
+    assert planner.world.sphere_self_overflag() > 0.9
+    own = MotionPlanner(planner.robot, planner.world, dataclasses.replace(planner.config, sphere_first_share=1.0))
+    outcome = own.plan(PlanProblem(start, goal, allowed_planning_time_s=5.0, seed=4))
+    assert outcome.status is PlanStatus.SUCCESS and outcome.details["search"] == "exact"
 
 
 def test_goal_set_ends_at_a_member(setup) -> None:
