@@ -21,7 +21,7 @@ class PlannerConfig:
     """Largest joint-space step between collision checks along an edge [rad]."""
     simplify: bool = True
     """Shortcut the raw path (every result is re-validated)."""
-    shortcut_iterations: int = 100
+    shortcut_iterations: int = 40
     sphere_first_share: float = 0.5
     """Share of the budget for the sphere-first search (0: exact search only; 1: sphere-first only)."""
     sphere_first_exact_radius_rad: float = 0.3
