@@ -22,6 +22,8 @@ class PlannerConfig:
     simplify: bool = True
     """Shortcut the raw path (every result is re-validated)."""
     shortcut_iterations: int = 40
+    shortcut_patience: int = 10
+    """Stop shortcutting after this many attempts in a row that shortened nothing (0: never)."""
     sphere_first_share: float = 0.5
     """Share of the budget for the sphere-first search (0: exact search only; 1: sphere-first only)."""
     sphere_first_exact_radius_rad: float = 0.3
@@ -49,6 +51,7 @@ class PlannerConfig:
         require(self.range_rad >= 0, f"planner.range_rad must be >= 0, got {self.range_rad}")
         require(self.edge_resolution_rad > 0, f"planner.edge_resolution_rad must be > 0, got {self.edge_resolution_rad}")
         require(self.shortcut_iterations >= 0, f"planner.shortcut_iterations must be >= 0, got {self.shortcut_iterations}")
+        require(self.shortcut_patience >= 0, f"planner.shortcut_patience must be >= 0, got {self.shortcut_patience}")
         require(0 <= self.sphere_first_share <= 1,
                 f"planner.sphere_first_share must be in [0, 1], got {self.sphere_first_share}")
         require(self.sphere_first_exact_radius_rad >= 0,

@@ -391,7 +391,8 @@ class MotionPlanner:
                 planner_id: str, planning_time_s: float, rng: np.random.Generator) -> PlanOutcome:
         simplify_start = time.perf_counter()
         if problem.simplify and len(path) > 2:
-            path = shortcut_path(path, motion_valid=motion_valid, rng=rng, iterations=self.config.shortcut_iterations)
+            path = shortcut_path(path, motion_valid=motion_valid, rng=rng, iterations=self.config.shortcut_iterations,
+                                 patience=self.config.shortcut_patience)
         simplification_time_s = time.perf_counter() - simplify_start
         # Re-validate what we return, exactly: a path is only as good as its last check.
         sphere_first, self._sphere_first = self._sphere_first, False

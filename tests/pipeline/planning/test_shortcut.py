@@ -29,19 +29,19 @@ def _random_valid_path(robot, rng: np.random.Generator, waypoints: int) -> np.nd
 # make_point_robot is a stateless factory, so reusing it across examples is safe.
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(path_seed=st.integers(0, 2**32 - 1), shortcut_seed=st.integers(0, 2**32 - 1),
-       waypoints=st.integers(2, 30), iterations=st.integers(0, 60))
-def test_shortcut_properties(make_point_robot, path_seed, shortcut_seed, waypoints, iterations) -> None:
+       waypoints=st.integers(2, 30), iterations=st.integers(0, 60), patience=st.integers(0, 15))
+def test_shortcut_properties(make_point_robot, path_seed, shortcut_seed, waypoints, iterations, patience) -> None:
     robot = make_point_robot(WALLS)
     path = _random_valid_path(robot, np.random.default_rng(path_seed), waypoints)
     out = shortcut_path(path, motion_valid=robot.motion_valid, rng=np.random.default_rng(shortcut_seed),
-                        iterations=iterations)
+                        iterations=iterations, patience=patience)
     assert out.ndim == 2 and out.shape[1] == 2 and 2 <= out.shape[0] <= path.shape[0] + 2 * iterations
     np.testing.assert_array_equal(out[0], path[0])
     np.testing.assert_array_equal(out[-1], path[-1])
     assert path_length_rad(out) <= path_length_rad(path) + 1e-12
     assert all(robot.motion_valid(a, b) for a, b in zip(out[:-1], out[1:]))
     again = shortcut_path(path, motion_valid=robot.motion_valid, rng=np.random.default_rng(shortcut_seed),
-                          iterations=iterations)
+                          iterations=iterations, patience=patience)
     np.testing.assert_array_equal(out, again)
 
 
@@ -58,6 +58,21 @@ def test_shortcut_keeps_needed_corner(make_point_robot) -> None:
     out = shortcut_path(path, motion_valid=robot.motion_valid, rng=np.random.default_rng(3), iterations=200)
     assert path_length_rad(out) < path_length_rad(path) - 0.3
     assert 3 <= out.shape[0] and all(robot.motion_valid(a, b) for a, b in zip(out[:-1], out[1:]))
+
+
+def test_patience_stops_when_nothing_shortens(make_point_robot) -> None:
+    robot = make_point_robot([(0.4, 0.0, 0.6, 0.95)])
+    path = np.array([[0.1, 0.1], [0.1, 0.97], [0.9, 0.97], [0.9, 0.1]])  # the corners are needed
+    calls = {0: 0, 5: 0}
+    for patience in calls:
+        def counted(a: np.ndarray, b: np.ndarray, patience: int = patience) -> bool:
+            calls[patience] += 1
+            return robot.motion_valid(a, b)
+        out = shortcut_path(path, motion_valid=counted, rng=np.random.default_rng(1), iterations=300, patience=patience)
+        assert all(robot.motion_valid(a, b) for a, b in zip(out[:-1], out[1:]))
+    assert calls[5] < calls[0] / 5
+    with pytest.raises(ValueError, match="patience"):
+        shortcut_path(path, motion_valid=robot.motion_valid, rng=np.random.default_rng(1), iterations=3, patience=-1)
 
 
 def test_shortcut_panda_path(panda: RobotModel) -> None:
