@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import octomap
 import pytest
 
 from robonav.pipeline.collision import CollisionWorld
@@ -67,6 +68,24 @@ def test_sphere_first_and_exact_searches_both_give_valid_paths(setup, share: flo
     assert outcome.details["search"] == search
     _assert_valid_path(planner, outcome.path, start)
     np.testing.assert_array_equal(outcome.path[-1], goal)
+
+
+def test_sphere_first_is_skipped_against_an_occupancy_map(setup) -> None:
+    _, start, goal = setup
+    robot = RobotModel.from_config(RobotConfig(
+        fixed_joint_positions={"panda_finger_joint1": 0.04, "panda_finger_joint2": 0.04},
+        allowed_collision_pairs=(("panda_leftfinger", "panda_rightfinger"), ("panda_hand", "panda_link6"))))
+    world = CollisionWorld(robot, padding_m=0.01)
+    tree = octomap.OcTree(0.02)
+    axis = np.arange(-0.04, 0.041, 0.01)
+    cube = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3) + BLOCK.position_m
+    tree.insertPointCloud(cube, np.array([0.0, 0.0, 2.0]))
+    world.set_octree(tree.writeBinary(), 0.02)
+    planner = MotionPlanner(robot, world, PlannerConfig(edge_resolution_rad=RESOLUTION_RAD, range_rad=1.0,
+                                                        sphere_first_share=1.0))
+    outcome = planner.plan(PlanProblem(start, goal, allowed_planning_time_s=5.0, seed=4))
+    assert outcome.status is PlanStatus.SUCCESS and outcome.details["search"] == "exact"
+    _assert_valid_path(planner, outcome.path, start)
 
 
 def test_sphere_first_is_skipped_when_self_collision_spheres_always_touch(setup) -> None:
