@@ -83,10 +83,14 @@ def run_collect(args: argparse.Namespace) -> int:
 
 
 def end_effector_poses(dataset: Dataset, config_path: str | None) -> list[FloatArray]:
-    """base_from_ee of every view: as written, or forward kinematics of its joint positions."""
+    """base_from_ee of every view: as written, or forward kinematics of its joint positions.
+
+    A `config_path` given is read even when every view has its pose, so a wrong path is an
+    error rather than silently unused."""
+    robot_cfg = load_config(config_path).robot if config_path is not None else None
     if all(v.base_from_ee is not None for v in dataset.views):
         return [v.base_from_ee.matrix for v in dataset.views]  # type: ignore[union-attr]
-    robot_cfg = load_config(config_path).robot
+    robot_cfg = robot_cfg if robot_cfg is not None else load_config(None).robot
     if tuple(robot_cfg.joint_names) != tuple(dataset.joint_names):
         raise CalibrationError(f"the dataset's joint_names {list(dataset.joint_names)} differ from the config's robot "
                                f"{list(robot_cfg.joint_names)}: pass --config with the robot the dataset was taken with")

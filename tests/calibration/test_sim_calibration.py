@@ -123,3 +123,6 @@ def test_degenerate_datasets_are_refused(dataset_dir: Path, tmp_path: Path, capl
     caplog.clear()
     assert cli.main(["solve", str(tmp_path / "nowhere")]) == 2
     assert "cannot read" in caplog.text
+    caplog.clear()
+    assert cli.main(["solve", str(dataset_dir), "--no-write", "--config", str(tmp_path / "missing.yaml")]) == 2
+    assert "missing.yaml" in caplog.text
