@@ -430,17 +430,9 @@ class CollisionWorld:
         """
         a = self._robot.validate_q(q_a, "q_a")
         b = self._robot.validate_q(q_b, "q_b")
-        steps = _step_count(a, b, resolution_rad)
         if self._broad_phase_usable():
-            # Only the broad phase's suspects go to FCL, in the same order; the first suspect is
-            # tried alone first because a blocked edge's first suspect usually is a collision.
-            first, _ = self._broad_phase.edge_suspects(a, b, resolution_rad, first_only=True)
-            if first.size == 0:
-                return True
-            if self._check(a + (b - a) * (first[0] / steps), first_only=True):
-                return False
-            suspects, _ = self._broad_phase.edge_suspects(a, b, resolution_rad)
-            return not any(self._check(a + (b - a) * (k / steps), first_only=True) for k in suspects[1:])
+            return self._suspects_free(a, b, resolution_rad, lambda _q: True)
+        steps = _step_count(a, b, resolution_rad)
         if self._check(b, first_only=True):
             return False
         for k in _bisection_order(steps):
@@ -492,8 +484,14 @@ class CollisionWorld:
         """`motion_valid` at the same states, each judged as by `state_free_by_spheres`."""
         if not self._broad_phase_usable():
             return self.motion_valid(q_a, q_b, resolution_rad)
-        a = self._robot.validate_q(q_a, "q_a")
-        b = self._robot.validate_q(q_b, "q_b")
+        return self._suspects_free(self._robot.validate_q(q_a, "q_a"), self._robot.validate_q(q_b, "q_b"),
+                                   resolution_rad, exact)
+
+    def _suspects_free(self, a: FloatArray, b: FloatArray, resolution_rad: float,
+                       exact: Callable[[FloatArray], bool]) -> bool:
+        """The edge's broad-phase suspects, in `motion_valid` order, are each either asked of
+        FCL (where `exact`) and free, or none exist. The first suspect is tried alone first
+        because a blocked edge's first suspect usually is a collision."""
         first, steps = self._broad_phase.edge_suspects(a, b, resolution_rad, first_only=True)
         if first.size == 0:
             return True

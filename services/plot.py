@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from robonav.pipeline.joint_order import reorder_to_robot
 from robonav.pipeline.messages import Setpoint
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.trajectory.timing import TrajectoryLimits, time_parameterize
@@ -111,10 +112,12 @@ def _from_recording(args: argparse.Namespace, cfg: RobonavConfig, robot: RobotMo
     if not chosen:
         known = sorted({s.trajectory_id for s in setpoints})
         raise ValueError(f"no setpoints of trajectory '{wanted}' in {args.recording}; it holds: {', '.join(known)}")
-    names = list(robot.joint_names)
-    order = [list(chosen[0].names).index(n) for n in names] if sorted(chosen[0].names) == sorted(names) else None
-    if order is None:
-        raise ValueError(f"setpoints name joints {list(chosen[0].names)}, not the robot's {names}")
+    names = tuple(robot.joint_names)
+    sent = tuple(chosen[0].names)
+
+    def in_robot_order(values: list[np.ndarray], key: str) -> np.ndarray:
+        return reorder_to_robot(np.array(values), sent, names, key)
+
     stamps = np.array([s.stamp for s in chosen])
     v_scale = args.velocity_scaling or 1.0
     a_scale = args.acceleration_scaling or 1.0
@@ -122,9 +125,9 @@ def _from_recording(args: argparse.Namespace, cfg: RobonavConfig, robot: RobotMo
                               robot.jerk_limits * a_scale)
     title = (f"'{wanted}': {len(chosen)} setpoints over {stamps[-1] - stamps[0]:.3f} s from {args.recording.name} "
              f"(dashed: limits x{v_scale} velocity, x{a_scale} accel/jerk)")
-    return _Series(title, tuple(names), stamps - stamps[0], np.array([s.position for s in chosen])[:, order],
-                   np.array([s.velocity for s in chosen])[:, order], np.array([s.acceleration for s in chosen])[:, order],
-                   limits)
+    return _Series(title, names, stamps - stamps[0], in_robot_order([s.position for s in chosen], "position"),
+                   in_robot_order([s.velocity for s in chosen], "velocity"),
+                   in_robot_order([s.acceleration for s in chosen], "acceleration"), limits)
 
 
 def _draw(series: _Series, output: Path) -> None:
