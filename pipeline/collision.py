@@ -337,13 +337,15 @@ class CollisionWorld:
         # Attached objects are not in the sphere model yet: fall back to FCL for every state.
         return self._broad_phase is not None and not self._attached
 
-    def collisions(self, q: FloatArray) -> list[tuple[str, str]]:
+    def collisions(self, q: FloatArray, *, padded: bool = True) -> list[tuple[str, str]]:
         """Every colliding pair at `q`: (link, link), (link, object name) or (link, 'occupancy').
 
         Pairs with an attached object name it first: (attached, link), (attached, object),
-        (attached, 'occupancy') or (attached, other attached object).
+        (attached, 'occupancy') or (attached, other attached object). `padded=False` checks the
+        bare links against the world too (attached objects stay padded), e.g. to tell a state
+        inside the padding from one touching an obstacle.
         """
-        return self._check(q, first_only=False)
+        return self._check(q, first_only=False, padded=padded)
 
     def clearance_m(self, q: FloatArray) -> float:
         """Smallest distance [m] from the UNPADDED robot hulls to the objects and octree at `q`.
@@ -558,7 +560,7 @@ class CollisionWorld:
         # FCL returns -1 for penetration and DBL_MAX for an octree without occupied cells.
         return 0.0 if d <= 0 else (math.inf if d >= 1e300 else float(d))
 
-    def _check(self, q: FloatArray, *, first_only: bool) -> list[tuple[str, str]]:
+    def _check(self, q: FloatArray, *, first_only: bool, padded: bool = True) -> list[tuple[str, str]]:
         centers = self._pose(q)
         hits: list[tuple[str, str]] = []
         links = self._links
@@ -568,14 +570,14 @@ class CollisionWorld:
             near = np.einsum("skj,skj->sk", gap, gap) <= self._padded_radii_sq
             for s, k in zip(*np.nonzero(near)):
                 pair = (links[s], self._object_names[k])
-                if pair not in hits and self._collide(self._posed_obj(int(s), padded=True), self._object_fcl[k]):
+                if pair not in hits and self._collide(self._posed_obj(int(s), padded=padded), self._object_fcl[k]):
                     hits.append(pair)
                     if first_only:
                         return hits
         if self._octree is not None:
             for s in range(len(links)):
                 pair = (links[s], OCCUPANCY)
-                if pair not in hits and self._collide(self._posed_obj(s, padded=True), self._octree):
+                if pair not in hits and self._collide(self._posed_obj(s, padded=padded), self._octree):
                     hits.append(pair)
                     if first_only:
                         return hits

@@ -283,6 +283,9 @@ class PlanResponse(Message):
     max_velocity_scaling_factor: float | None = None
     max_acceleration_scaling_factor: float | None = None
     request_id: str | None = None
+    start_escaped: bool = False
+    """The start was inside the robot's padding around the occupancy map (bare links clear): the
+    first segment leaves the padding through states where the bare links stay clear of the map."""
     ok: bool = True
 
 

@@ -141,8 +141,9 @@ class PlannerNode(Node):
         if outcome.status is not PlanStatus.SUCCESS or outcome.path is None:
             reply_error(query, STATUS_CODES[outcome.status], outcome.detail, outcome.details)
             return
-        log.info("planned with %s: %d waypoints, %.1f ms, length %.2f rad", outcome.planner_id, len(outcome.path),
-                 outcome.planning_time_s * 1e3, outcome.path_length_rad)
+        log.info("planned with %s: %d waypoints, %.1f ms, length %.2f rad%s", outcome.planner_id, len(outcome.path),
+                 outcome.planning_time_s * 1e3, outcome.path_length_rad,
+                 "; first left the start's padding" if "start_escape" in outcome.details else "")
         reply_ok(query, PlanResponse(
             joint_names=names, path=outcome.path, planner_id=outcome.planner_id, goal_index=outcome.goal_index,
             goal_positions=outcome.path[-1],
@@ -152,7 +153,7 @@ class PlannerNode(Node):
             waypoint_count=len(outcome.path), occupancy_stamp=map_stamp,
             max_velocity_scaling_factor=request.max_velocity_scaling_factor,
             max_acceleration_scaling_factor=request.max_acceleration_scaling_factor,
-            request_id=request.request_id,
+            request_id=request.request_id, start_escaped="start_escape" in outcome.details,
         ))
 
     def _joint_goals(self, request: PlanRequest) -> np.ndarray | None:

@@ -29,6 +29,12 @@ class PlannerConfig:
     sphere_first_exact_radius_rad: float = 0.3
     """Within this joint-space distance of the start or a goal, the sphere-first search still asks
     FCL about states the spheres flag [rad]."""
+    start_escape_rad: float = 0.1
+    """A start inside the padding around the occupancy map (bare links clear) may be left through
+    states that keep the bare links clear, to a valid state within this distance in every joint
+    [rad] (MoveIt's FixStartStateCollision; see `start_escape`). 0: such a start is START_IN_COLLISION."""
+    start_escape_samples: int = 100
+    """Candidate states drawn around such a start (MoveIt's max_sampling_attempts)."""
     seed: int = 0
     """Seeds OMPL's sampler once per planner process and the shortcutting per request."""
     occupancy_max_age_s: float = 10.0
@@ -56,6 +62,9 @@ class PlannerConfig:
                 f"planner.sphere_first_share must be in [0, 1], got {self.sphere_first_share}")
         require(self.sphere_first_exact_radius_rad >= 0,
                 f"planner.sphere_first_exact_radius_rad must be >= 0, got {self.sphere_first_exact_radius_rad}")
+        require(self.start_escape_rad >= 0, f"planner.start_escape_rad must be >= 0, got {self.start_escape_rad}")
+        require(self.start_escape_samples >= 0,
+                f"planner.start_escape_samples must be >= 0, got {self.start_escape_samples}")
         require(self.ik_restarts >= 0, f"planner.ik_restarts must be >= 0, got {self.ik_restarts}")
         require(self.ik_solutions >= 1, f"planner.ik_solutions must be >= 1, got {self.ik_solutions}")
         require(self.lattice_resolution_rad > 0,

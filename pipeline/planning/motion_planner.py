@@ -25,6 +25,7 @@ from robonav.pipeline.planning.ompl_planners import PLANNER_CLASSES, JointSpaceP
 from robonav.pipeline.planning.potential_field import PotentialFieldConfig, plan_potential_field
 from robonav.pipeline.planning.result import PlanResult, PlanStatus
 from robonav.pipeline.planning.shortcut import shortcut_path
+from robonav.pipeline.planning.start_escape import escape_start
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.transforms import FloatArray
 
@@ -152,9 +153,15 @@ class MotionPlanner:
         start = self.robot.validate_q(problem.start_rad, "start")
         is_valid, motion_valid = self._validity(problem)
 
+        real_start: FloatArray | None = None
         start_problem = self._state_problem(start, is_valid, "start", PlanStatus.START_INVALID)
         if start_problem is not None:
-            return start_problem
+            escape = None if start_problem.status is not PlanStatus.START_INVALID else escape_start(
+                self.world, start, is_valid, rng, radius_rad=self.config.start_escape_rad,
+                samples=self.config.start_escape_samples, resolution_rad=self.config.edge_resolution_rad)
+            if escape is None:
+                return start_problem
+            real_start, start = start, escape
 
         goals = self._goal_set(problem, start, is_valid, rng)
         if isinstance(goals, PlanOutcome):
@@ -179,7 +186,22 @@ class MotionPlanner:
                 last_failure = outcome
         if best is None:
             return last_failure or PlanOutcome(PlanStatus.TIMEOUT, "no planning time left", planner_id=problem.planner_id)
-        return dataclasses.replace(best, details={**best.details, "attempt_lengths_rad": lengths})
+        best = dataclasses.replace(best, details={**best.details, "attempt_lengths_rad": lengths})
+        return best if real_start is None else self._from_real_start(best, real_start, start_problem)
+
+    def _from_real_start(self, outcome: PlanOutcome, real_start: FloatArray, start_problem: PlanOutcome) -> PlanOutcome:
+        """`outcome` planned from an escape state, with the real start put in front (see `start_escape`)."""
+        assert outcome.path is not None
+        path = np.vstack([real_start, outcome.path])
+        escape = {"from_rad": real_start.tolist(), "to_rad": outcome.path[0].tolist(),
+                  "pairs": start_problem.details.get("pairs", [])}
+        clearance = outcome.min_clearance_m
+        if self.config.report_clearance:
+            clearance = min(clearance, self.world.clearance_m(real_start))
+        return dataclasses.replace(
+            outcome, path=path, path_length_rad=path_length_rad(path), max_joint_step_rad=max_joint_step_rad(path),
+            min_clearance_m=clearance, detail=f"{outcome.detail}; left the start's padding ({start_problem.detail})",
+            details={**outcome.details, "start_escape": escape})
 
     def _validity(self, problem: PlanProblem):  # noqa: ANN202 - a pair of callables
         if problem.workspace_min_m is None and problem.workspace_max_m is None:
