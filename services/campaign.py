@@ -5,8 +5,11 @@
 
 One stack runs the whole campaign; scenes are swapped in at run time (`sim/objects set`,
 `perception/clear`). Each scene gets goals drawn so that a camera-built map can allow them
-(some only by a detour); a reference planner on the truth decides which are feasible. In `M`
-scenes a box slides onto the path while the arm moves. Reports contacts (pybullet ground
+(some only by a detour): every link at the goal keeps padding + inflation + a voxel diagonal
+from the true objects, the most the map can add around a surface. A reference planner on the
+truth with that margin decides which goals are feasible. In `M` scenes a box slides onto the
+path while the arm moves, never to rest within that margin of the goal; a goal the box makes
+unreachable for the reference planner counts as unreachable, not as a failure. Reports contacts (pybullet ground
 truth), setpoint limit violations, the smallest true clearance, planning time, perception
 latency and replans. Exit code 0 when nothing touched and no setpoint broke a limit.
 """

@@ -8,6 +8,7 @@ never appears around it.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,6 +22,7 @@ from robonav.pipeline.messages import (ErrorReply, ExecuteResponse, ObjectMotion
 from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import intruder_for_trajectory, perceivable_objects, sample_goal
 from robonav.pipeline.trajectory.execution import PATH_BLOCKED
 from robonav.pipeline.trajectory.path_guard import PathGuard
@@ -99,11 +101,15 @@ class SceneRunner:
         self.scaling = velocity_scaling
         self.seed = seed
         self.home = np.asarray(cfg.robot.home_position_rad, dtype=np.float64)
-        # What the map can allow: padding, inflation and a voxel of quantization on top of the truth.
-        self.margin_m = cfg.robot.padding_m + cfg.perception.inflation_m + cfg.perception.resolution_m
+        # What the map can allow: padding, inflation and a voxel of quantization on top of the
+        # truth. A voxel holding a surface point reaches up to its diagonal beyond that point.
+        self.margin_m = cfg.robot.padding_m + cfg.perception.inflation_m + math.sqrt(3.0) * cfg.perception.resolution_m
         self.view = CollisionWorld(self.robot, padding_m=self.margin_m)
         self.truth = CollisionWorld(self.robot, padding_m=0.0)
         self.reference = MotionPlanner(self.robot, self.view, cfg.planner)
+        self._view_objects: tuple[SceneObject, ...] = ()
+        self._intruder_at_rest: SceneObject | None = None
+        self._goal_check = CollisionWorld(self.robot, padding_m=self.margin_m, broad_phase=False)
         self.frame_period_s = max(1.0 / c.rate_hz for c in cfg.cameras)
         self.link = cfg.robot.end_effector_link
         self.plan_seq = 0
@@ -187,7 +193,8 @@ class SceneRunner:
     def run(self, index: int, scene: Scene, *, moving: bool, rng: np.random.Generator) -> dict[str, Any]:
         started = time.monotonic()
         self.swap_in(scene)
-        self.view.set_objects(perceivable_objects(scene.objects, self.cfg.perception.workspace_min_m[2]))
+        self._view_objects = perceivable_objects(scene.objects, self.cfg.perception.workspace_min_m[2])
+        self.view.set_objects(self._view_objects)
         truth = self.truth
         truth.set_objects(scene.objects)
         top_z = max((o.position_m[2] + o.local_bounds_m[1][2] for o in scene.objects if o.name == "table"), default=0.0)
@@ -215,7 +222,10 @@ class SceneRunner:
                                                         seed=self.seed + index * 100 + g))
             record = GoalRecord(index, g, np.round(goal, 4).tolist(), reference.status is PlanStatus.SUCCESS, detour,
                                 moving=moving and g == 0)
+            self._intruder_at_rest = None
             self._move(goal, record)
+            if record.feasible and self._intruder_at_rest is not None:
+                record.feasible = self._reachable_with(self._intruder_at_rest, start, goal, record)
             records.append(record)
             if record.moving:
                 self._objects(SimObjectsRequest(operation="cancel"))
@@ -230,6 +240,17 @@ class SceneRunner:
                 "contacts": contacts.contact_count, "contact_pairs": list(contacts.pairs),
                 "min_distance_m": contacts.min_distance_m, "min_distance_pair": contacts.min_distance_pair, "goals": [r.__dict__ for r in records],
                 "wall_s": round(time.monotonic() - started, 2)}
+
+    def _reachable_with(self, box: SceneObject, start: np.ndarray, goal: np.ndarray, record: GoalRecord) -> bool:
+        """Whether the reference planner still reaches `goal` from `start` with `box` added: a goal
+        the intruder made unreachable is reported as such, not as a failure."""
+        self.view.set_objects((*self._view_objects, box))
+        try:
+            return self.reference.plan(PlanProblem(start_rad=start, goals_rad=goal, allowed_planning_time_s=2.0,
+                                                   seed=self.seed + record.scene * 100 + record.index)).status \
+                is PlanStatus.SUCCESS
+        finally:
+            self.view.set_objects(self._view_objects)
 
     # --- one goal -------------------------------------------------------------------------
 
@@ -339,8 +360,14 @@ class SceneRunner:
             acceleration_scaling=scaling or self.cfg.executor.acceleration_scaling,
             max_path_deviation_rad=self.cfg.executor.max_path_deviation_rad)
         times, q, _, _ = trajectory.sample_uniform(0.05)
+        # The box blocks the way, not the goal: resting on or beside the goal, it would make the
+        # goal unreachable rather than test a stop and a detour.
+        def at_goal(box: SceneObject) -> bool:
+            self._goal_check.set_objects([box])
+            return self._goal_check.in_collision(path[-1])
+
         intruder = intruder_for_trajectory(self.robot, times, q, link=self.link, slide_s=INTRUDER_SLIDE_S,
-                                           min_lead_s=INTRUDER_LEAD_S)
+                                           min_lead_s=INTRUDER_LEAD_S, reject=at_goal)
         if intruder is None:
             log.info("%s: too short for an avoidable intruder", trajectory_id)
             return False
@@ -349,4 +376,7 @@ class SceneRunner:
         self._objects(SimObjectsRequest(operation="script", motions=(ObjectMotionSpec(
             "intruder", position_m=intruder.target_m, duration_s=INTRUDER_SLIDE_S, at_progress=0.0,
             trajectory_id=trajectory_id),)))
+        resting = np.eye(4)
+        resting[:3, 3] = intruder.target_m
+        self._intruder_at_rest = intruder.start.with_pose(resting)
         return True
