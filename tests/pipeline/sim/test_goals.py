@@ -96,3 +96,17 @@ def test_no_intruder_when_the_trajectory_is_too_short() -> None:
     times = np.linspace(0.0, 1.0, 21)
     path = HOME + times[:, None] * np.array([0.5, 0, 0, 0, 0, 0, 0])
     assert intruder_for_trajectory(ROBOT, times, path, link="panda_hand", slide_s=0.5, min_lead_s=1.0) is None
+
+
+def test_rejected_resting_places_are_skipped_for_later_ones() -> None:
+    times = np.linspace(0.0, 3.0, 61)
+    path = HOME + (0.5 - 0.5 * np.cos(np.pi * times / 3.0))[:, None] * np.array([2.0, 0.3, 0.0, 0.3, 0.0, -0.2, 0.0])
+    first = intruder_for_trajectory(ROBOT, times, path, link="panda_hand", slide_s=0.5, min_lead_s=1.0)
+    assert first is not None
+    near_first = lambda box: float(np.linalg.norm(np.array(box.position_m) - first.target_m)) < 0.05  # noqa: E731
+    later = intruder_for_trajectory(ROBOT, times, path, link="panda_hand", slide_s=0.5, min_lead_s=1.0,
+                                    reject=near_first)
+    assert later is not None and later.target_time_s > first.target_time_s
+    assert np.linalg.norm(np.array(later.target_m) - first.target_m) >= 0.05
+    assert intruder_for_trajectory(ROBOT, times, path, link="panda_hand", slide_s=0.5, min_lead_s=1.0,
+                                   reject=lambda box: True) is None
