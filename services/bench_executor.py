@@ -44,6 +44,7 @@ from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import intruder_for_trajectory
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.trajectory.timing import time_parameterize
+from robonav.services.bench_reference_loop import run_reference_loop, shared_misses
 from robonav.services.config import RobonavConfig, ZenohConfig, default_config_path, load_config
 
 
@@ -62,6 +63,9 @@ def add_parser(kinds: Any) -> None:  # noqa: ANN401 - argparse's private subpars
     parser.add_argument("--drops", type=int, default=0,
                         help="with --perception-hz: then drop a box on a moving arm's path this many times and time "
                              "the stop from the first frame that shows it")
+    parser.add_argument("--reference-loop", action="store_true",
+                        help="run a bare loop at the same rate and priority beside the stream, to tell the "
+                             "machine's own stalls from the stream's")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--config", default=None, help="YAML config (default: the packaged one)")
     parser.add_argument("--json", type=Path, default=None, help="write the summary as JSON to this file")
@@ -201,7 +205,8 @@ def _executor_process(cfg: RobonavConfig, keep_times: int, conn: Any) -> None:  
 
 
 def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: int, *,
-                  perception_hz: float = 0.0, config_path: str | None = None, drops: int = 0) -> dict[str, Any]:
+                  perception_hz: float = 0.0, config_path: str | None = None, drops: int = 0,
+                  reference_loop: bool = False) -> dict[str, Any]:
     from robonav.services.client import RobonavClient
     from robonav.services.common import open_session
 
@@ -235,6 +240,8 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
     robot_thread.start()
     helpers: list[Any] = []
     frames_stop, box_on, box_since = spawn.Event(), spawn.Event(), spawn.Value("d", 0.0)
+    reference_stop = spawn.Event()
+    reference_times: np.ndarray | None = None
     drop_delays_s: list[float] = []
     maps_before = 0
     if perception_hz > 0:
@@ -268,6 +275,14 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
         scene = CollisionWorld(robot, padding_m=0.08) if perception_hz > 0 else None
         if scene is not None:
             scene.set_objects(list(cfg.sim.objects))
+        if reference_loop:
+            reference_conn, reference_child = spawn.Pipe()
+            reference = spawn.Process(target=run_reference_loop, daemon=True, args=(
+                1.0 / cfg.executor.rate_hz, cfg.executor.realtime_priority, reference_stop, reference_child))
+            reference.start()
+            helpers.append(reference)
+            if not reference_conn.poll(60.0) or reference_conn.recv() != "ready":
+                raise RuntimeError("the reference loop did not start")
         end = time.monotonic() + seconds
         while time.monotonic() < end:
             start = position[0].copy()
@@ -286,6 +301,11 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
             raise RuntimeError("the executor process did not report its stream")
         stream = executor_conn.recv()
         times = stream.publish_times_s
+        if reference_loop:
+            reference_stop.set()
+            if not reference_conn.poll(30.0):
+                raise RuntimeError("the reference loop did not report")
+            reference_times = reference_conn.recv()
         maps = (client.occupancy.seq - maps_before) if perception_hz > 0 and client.occupancy is not None else 0
         for trial in range(drops if perception_hz > 0 else 0):
             delay = _drop_trial(client, position, box_on, box_since, trial)
@@ -293,6 +313,7 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
                 drop_delays_s.append(delay)
     finally:
         frames_stop.set()
+        reference_stop.set()
         for helper in helpers:
             if isinstance(helper, subprocess.Popen):
                 helper.terminate()
@@ -313,7 +334,8 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
     nominal_s = 1.0 / cfg.executor.rate_hz
     periods = np.diff(times)
     error_ms = np.abs(periods - nominal_s) * 1e3
-    return {"drops": drops, "stopped": len(drop_delays_s), "stop_after_frame_ms": [round(d * 1e3, 1) for d in drop_delays_s],
+    shared = None if reference_times is None else shared_misses(times, reference_times, nominal_s)
+    return {"reference_loop": shared, "drops": drops, "stopped": len(drop_delays_s), "stop_after_frame_ms": [round(d * 1e3, 1) for d in drop_delays_s],
             "setpoints": int(times.size), "executes": preemptions, "perception_maps": maps,
             "perception_maps_hz": maps / seconds,
             "p50": float(np.percentile(error_ms, 50)), "p99": float(np.percentile(error_ms, 99)),
@@ -370,7 +392,7 @@ def main(args: argparse.Namespace) -> int:
     robot = RobotModel.from_config(cfg.robot)
     ratios = duration_ratios(cfg, robot, args.paths, args.seed)
     periods = period_errors(cfg, robot, args.seconds, args.seed, perception_hz=args.perception_hz, config_path=args.config,
-                            drops=args.drops)
+                            drops=args.drops, reference_loop=args.reference_loop)
     report = {"rate_hz": cfg.executor.rate_hz, "seconds": args.seconds, "busy_wait_s": cfg.executor.busy_wait_s,
               "realtime_priority": cfg.executor.realtime_priority,
               "period_error_ms": {k: periods[k] for k in ("p50", "p99", "max")}, "missed": periods["missed"],
@@ -378,7 +400,7 @@ def main(args: argparse.Namespace) -> int:
               "mean_period_ms": periods["mean_period_ms"],
               "late_tables": periods["late_tables"], "late_ms": periods["late_ms"], "starved": periods["starved"],
               "perception_hz": args.perception_hz, "perception_maps_hz": periods["perception_maps_hz"],
-              "drop_stop": _drop_summary(periods),
+              "drop_stop": _drop_summary(periods), "reference_loop": periods["reference_loop"],
               "duration_ratio_vs_toppra": ratios,
               "method": "period: time.monotonic() after each setpoint put in the executor's setpoint stream process; "
                         "ratio: time_parameterize duration / TOPP-RA (vel+acc, cubic spline) duration"}
@@ -393,6 +415,11 @@ def main(args: argparse.Namespace) -> int:
               f"frame showing it [ms]: p50 {drop['p50']}  p95 {drop['p95']}  max {drop['max']}")
     print(f"period error [ms]: p50 {periods['p50']:.3f}  p99 {periods['p99']:.3f}  max {periods['max']:.3f}  "
           f"missed (> 2x period) {periods['missed']}")
+    shared = periods["reference_loop"]
+    if shared is not None:
+        print(f"bare reference loop beside it: missed {shared['reference_missed']}, period error p99 "
+              f"{shared['reference_period_error_ms']['p99']:.3f} max {shared['reference_period_error_ms']['max']:.3f} ms; "
+              f"stream misses while the reference missed too: {shared['shared']} of {shared['stream_missed']}")
     print(f"trajectories handed to the stream after their start time: {periods['late_tables']} "
           f"(late by [ms]: {periods['late_ms'][:20]}); braked for want of the rest of one: {periods['starved']}")
     print(f"duration vs TOPP-RA over {ratios['paths']} paths: median {ratios['median']:.3f}  max {ratios['max']:.3f}  "

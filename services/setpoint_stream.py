@@ -277,7 +277,7 @@ class _Loop:
                                           priority=zenoh.Priority.REAL_TIME, express=True)
         # The reader inherits the loop's scheduling class: at normal priority it could be
         # preempted while holding the GIL, and the real-time loop would wait for it.
-        _real_time_priority(spec.realtime_priority)
+        set_real_time_priority(spec.realtime_priority)
         reader = threading.Thread(target=self.receive, name="setpoint-stream-reader", daemon=True)
         reader.start()
         # What the loop allocates (setpoints, their bytes) holds no cycles: a collection pass
@@ -363,7 +363,7 @@ def _run(spec: _StreamSpec, conn: Any) -> None:  # noqa: ANN401 - a multiprocess
     _Loop(spec, conn).run()
 
 
-def _real_time_priority(priority: int) -> None:
+def set_real_time_priority(priority: int) -> None:
     """Run the calling thread (the streaming loop) under SCHED_FIFO at `priority` (0: leave it).
 
     What robot control loops do (ros2_control, Franka's libfranka): the scheduler then never
