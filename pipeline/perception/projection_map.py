@@ -242,6 +242,14 @@ class ProjectionOccupancyMap:
             order = np.argsort(-(hits % self._dims[2]), kind="stable")
             room = np.empty(int(hits.size) * int(self._dims[2]), dtype=np.int64)
             filled = room[:kernels.fill_below(hits[order], self._mark, self._frame_id, self._dims, room)].copy()
+            if self_filter is not None and world_from_link is not None and filled.size:
+                # A column under a surface above the arm runs down through it: the part on the
+                # robot is not an obstacle (left in, it stood beside the base until a later frame).
+                lower, upper = self_filter.bounds_m(world_from_link)
+                centres = self.centres_m(filled)
+                near = np.flatnonzero(np.all((centres >= lower) & (centres <= upper), axis=1))
+                on_robot = near[~self_filter.outside_mask(centres[near], world_from_link)]
+                filled = np.delete(filled, on_robot)
             hits = np.concatenate([hits, filled])
         lap("self_filter")
 

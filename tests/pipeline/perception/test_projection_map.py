@@ -331,3 +331,16 @@ def test_bad_input_is_refused_with_a_clear_error() -> None:
     depth[::2] = np.inf
     update = m.integrate_depth(depth, k, FRONT.world_from_camera)
     assert update.hit_voxels == 0 and update.no_return == update.sampled
+
+
+def test_filling_below_a_surface_stops_at_the_robot(robot: RobotModel, self_filter: SelfFilter) -> None:
+    # A plate over the hand: the columns under it run down through the arm to the floor.
+    hand = robot.link_poses(HOME)["panda_hand"][:3, 3]
+    plate = SceneObject("plate", "box", (hand[0], hand[1], hand[2] + 0.25), size_m=(0.2, 0.2, 0.02))
+    m = ProjectionOccupancyMap(dataclasses.replace(CONFIG, fill_below_surfaces=True))
+    integrate(m, render(TABLE, plate), robot, self_filter)
+    centres = m.occupied_centers_m()
+    below = centres[(np.abs(centres[:, 0] - hand[0]) < 0.08) & (np.abs(centres[:, 1] - hand[1]) < 0.08)
+                    & (centres[:, 2] < hand[2] + 0.2)]
+    assert len(below) > 10  # the plate's shadow is filled, around the arm
+    assert np.all(self_filter.outside_mask(centres, robot.link_poses(HOME)))  # but never on it
