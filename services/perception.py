@@ -116,6 +116,8 @@ class PerceptionNode(Node):
         self.drops = Drops()
         self.last_stage_ms: dict[str, float] = {}
         self._last_stamp: dict[str, float] = {}
+        self._cleared_at = -np.inf
+        """Wall time of the last perception/clear: frames taken before it are dropped."""
         self._newest_stamp = 0.0
         self._label_names: dict[int, str] = {}
         self._pending: dict[str, zenoh.Sample] = {}  # latest unprocessed frame per key
@@ -151,6 +153,9 @@ class PerceptionNode(Node):
         with self._map_lock:
             cleared = self.map.voxel_count
             self.map.clear()
+            # A frame taken before now (pending, or on its way) shows the world as it was: after
+            # a scene change it would put the old objects back into the emptied map.
+            self._cleared_at = time.time()
         reply_ok(query, PerceptionClearResponse(cleared_voxels=cleared))
         self._publish()
 
@@ -174,6 +179,9 @@ class PerceptionNode(Node):
         if camera is None:
             self.drops.add("unknown_camera", f"{cloud.camera_id!r} (configured: {sorted(self.cameras)})")
             return False
+        if cloud.stamp <= self._cleared_at:
+            self.drops.add("before_clear", f"camera {cloud.camera_id!r} frame taken before the last perception/clear")
+            return False
         if cloud.stamp <= self._last_stamp.get(cloud.camera_id, -np.inf):
             self.drops.add("out_of_order", f"camera {cloud.camera_id!r} stamp {cloud.stamp:.3f} is not newer than "
                                            f"{self._last_stamp[cloud.camera_id]:.3f}")
@@ -188,6 +196,9 @@ class PerceptionNode(Node):
         world_from_camera = self.world_from_camera[cloud.camera_id]
         world_from_link = self.robot.link_poses(q)
         with self._map_lock:
+            if cloud.stamp <= self._cleared_at:  # cleared while this frame was being prepared
+                self.drops.add("before_clear", f"camera {cloud.camera_id!r} frame taken before the last perception/clear")
+                return False
             if isinstance(self.map, ProjectionOccupancyMap):
                 intrinsics = cloud.intrinsics or camera.intrinsics
                 t0 = time.perf_counter()

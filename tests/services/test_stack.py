@@ -19,6 +19,7 @@ from robonav.pipeline.messages import (
     PerceptionClearResponse,
     PerceptionStatusResponse,
     PlanResponse,
+    PointCloud,
     decode_reply,
 )
 from robonav.services.client import RobonavClient
@@ -179,6 +180,14 @@ def test_perception_clear_forgets_the_map_until_the_next_frame(client: RobonavCl
     assert len(replies) == 1 and replies[0].ok is not None
     cleared = decode_reply(replies[0].ok.payload.to_bytes(), PerceptionClearResponse)
     assert isinstance(cleared, PerceptionClearResponse) and cleared.cleared_voxels > 0
+    # A frame taken before the clear (here: stamped 50 ms before it) shows the old world: dropped.
+    before = _perception_status(session).dropped.get("before_clear", 0)
+    session.put("robonav/arm0/camera/test/cloud", PointCloud(
+        stamp=time.time() - 0.05, camera_id="cam0", points=np.full((10, 3), 0.5, dtype=np.float32)).to_wire())
+    deadline = time.monotonic() + 10.0
+    while _perception_status(session).dropped.get("before_clear", 0) == before and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert _perception_status(session).dropped.get("before_clear", 0) > before
     # The next camera frame maps the scene again.
     after = time.time()
     assert client.wait_for(lambda: client.occupancy is not None and client.occupancy.stamp > after
