@@ -167,6 +167,13 @@ class PerceptionNode(Node):
                                                  dropped=dict(self.drops.counts), occupied_voxels=voxels,
                                                  stage_ms=dict(self.last_stage_ms)))
 
+    def _taken_before_clear(self, cloud: PointCloud | DepthImage) -> bool:
+        """Whether the frame predates the last perception/clear (then counted as dropped)."""
+        if cloud.stamp > self._cleared_at:
+            return False
+        self.drops.add("before_clear", f"camera {cloud.camera_id!r} frame taken before the last perception/clear")
+        return True
+
     def process(self, sample: zenoh.Sample) -> bool:
         """Integrate one frame; False (and counted) when it was dropped."""
         is_depth = str(sample.key_expr).endswith("/depth")
@@ -179,8 +186,7 @@ class PerceptionNode(Node):
         if camera is None:
             self.drops.add("unknown_camera", f"{cloud.camera_id!r} (configured: {sorted(self.cameras)})")
             return False
-        if cloud.stamp <= self._cleared_at:
-            self.drops.add("before_clear", f"camera {cloud.camera_id!r} frame taken before the last perception/clear")
+        if self._taken_before_clear(cloud):
             return False
         if cloud.stamp <= self._last_stamp.get(cloud.camera_id, -np.inf):
             self.drops.add("out_of_order", f"camera {cloud.camera_id!r} stamp {cloud.stamp:.3f} is not newer than "
@@ -196,8 +202,7 @@ class PerceptionNode(Node):
         world_from_camera = self.world_from_camera[cloud.camera_id]
         world_from_link = self.robot.link_poses(q)
         with self._map_lock:
-            if cloud.stamp <= self._cleared_at:  # cleared while this frame was being prepared
-                self.drops.add("before_clear", f"camera {cloud.camera_id!r} frame taken before the last perception/clear")
+            if self._taken_before_clear(cloud):  # cleared while this frame was being prepared
                 return False
             if isinstance(self.map, ProjectionOccupancyMap):
                 intrinsics = cloud.intrinsics or camera.intrinsics

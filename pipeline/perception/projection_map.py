@@ -227,14 +227,7 @@ class ProjectionOccupancyMap:
                 self_filtered = int(hits.size - np.count_nonzero(outside))
                 hits = hits[outside]
             if occupied.size:
-                # Only voxels in the robot's bounding box can be inside it: a cheap cut of a
-                # map that is mostly table and objects.
-                clearing = clear_filter or self_filter
-                lower, upper = clearing.bounds_m(world_from_link)
-                centres = self.centres_m(occupied)
-                near = np.flatnonzero(np.all((centres >= lower) & (centres <= upper), axis=1))
-                inside = ~clearing.outside_mask(centres[near], world_from_link)
-                robot_voxels = occupied[near[inside]]
+                robot_voxels = self._on_robot(occupied, clear_filter or self_filter, world_from_link)
                 robot_cleared = int(robot_voxels.size)
         filled = np.empty(0, dtype=np.int64)
         if cfg.fill_below_surfaces and hits.size:
@@ -245,11 +238,7 @@ class ProjectionOccupancyMap:
             if self_filter is not None and world_from_link is not None and filled.size:
                 # A column under a surface above the arm runs down through it: the part on the
                 # robot is not an obstacle (left in, it stood beside the base until a later frame).
-                lower, upper = self_filter.bounds_m(world_from_link)
-                centres = self.centres_m(filled)
-                near = np.flatnonzero(np.all((centres >= lower) & (centres <= upper), axis=1))
-                on_robot = near[~self_filter.outside_mask(centres[near], world_from_link)]
-                filled = np.delete(filled, on_robot)
+                filled = np.setdiff1d(filled, self._on_robot(filled, self_filter, world_from_link), assume_unique=True)
             hits = np.concatenate([hits, filled])
         lap("self_filter")
 
@@ -286,6 +275,15 @@ class ProjectionOccupancyMap:
             robot_cleared=robot_cleared, edge_pixels=edge_pixels, newly_occupied=int(now_occupied.size), newly_freed=int(np.unique(freed).size),
             stage_ms=stage_ms,
         )
+
+    def _on_robot(self, indices: IntArray, robot: SelfFilter, world_from_link: Mapping[str, npt.ArrayLike]) -> IntArray:
+        """The voxels of `indices` whose centres lie inside `robot`'s padded links."""
+        # Only voxels in the robot's bounding box can be inside it: a cheap cut of a map that
+        # is mostly table and objects.
+        lower, upper = robot.bounds_m(world_from_link)
+        centres = self.centres_m(indices)
+        near = np.flatnonzero(np.all((centres >= lower) & (centres <= upper), axis=1))
+        return indices[near[~robot.outside_mask(centres[near], world_from_link)]]
 
     def _complete_support(self, self_filter: SelfFilter | None,
                           world_from_link: Mapping[str, npt.ArrayLike] | None) -> IntArray:
