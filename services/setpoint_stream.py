@@ -48,6 +48,8 @@ HEAD_S = 0.25
 """Trajectories longer than this go over as a head of this length, then the whole [s]."""
 START_TIMEOUT_S = 60.0
 """The streaming process must have its Zenoh session up within this [s]."""
+WALL_REFRESH_S = 1.0
+"""The loop measures the wall clock's offset from the monotonic one this often [s]."""
 
 
 @dataclass(frozen=True)
@@ -287,6 +289,7 @@ class _Loop:
         self.conn.send("ready")
         period = spec.period_s
         tick = spec.origin_s + math.ceil((time.monotonic() - spec.origin_s) / period) * period
+        wall_from_monotonic_s, refresh_at = wall_from_monotonic(), tick + WALL_REFRESH_S
         active: SetpointTable | None = None
         braking = False
         try:
@@ -311,7 +314,7 @@ class _Loop:
                     # The stamp is the moment the setpoint is for (its tick, as Unix time), not
                     # when it was put: a consumer can place it in time even when it left late.
                     (final if last else moving).put(Setpoint(
-                        stamp=tick + (time.time() - time.monotonic()), trajectory_id=active.trajectory_id, names=spec.joint_names,
+                        stamp=tick + wall_from_monotonic_s, trajectory_id=active.trajectory_id, names=spec.joint_names,
                         position=active.position[row], velocity=active.velocity[row],
                         acceleration=active.acceleration[row]).to_wire())
                     if self.published < len(self.times):
@@ -323,6 +326,8 @@ class _Loop:
                             break
                 if self.stats_asked.is_set():
                     self.answer_stats()
+                if tick >= refresh_at:  # follows NTP slewing the wall clock
+                    wall_from_monotonic_s, refresh_at = wall_from_monotonic(), tick + WALL_REFRESH_S
                 tick += period
                 now = time.monotonic()
                 if tick < now - period:  # fell behind (the machine stalled): skip whole ticks, keep the grid
@@ -354,6 +359,21 @@ class _Loop:
         stop = stop_trajectory(active.position[row], active.velocity[row], active.acceleration[row],
                                max_velocity=limits.velocity, max_acceleration=limits.acceleration, max_jerk=limits.jerk)
         return sample_table(stop, active.trajectory_id, tick_s, period)
+
+
+def wall_from_monotonic(tries: int = 5) -> float:
+    """time.time() - time.monotonic() [s], from the tightest of `tries` bracketed reads.
+
+    One pair of reads is off by however long the process was preempted between them (50 µs
+    seen on a busy machine), which would put a setpoint's stamp off its tick."""
+    best_spread, best = math.inf, 0.0
+    for _ in range(tries):
+        before = time.monotonic()
+        wall = time.time()
+        after = time.monotonic()
+        if after - before < best_spread:
+            best_spread, best = after - before, wall - 0.5 * (before + after)
+    return best
 
 
 def _run(spec: _StreamSpec, conn: Any) -> None:  # noqa: ANN401 - a multiprocessing Connection

@@ -15,7 +15,7 @@ from robonav.pipeline.messages import Setpoint
 from robonav.pipeline.trajectory.timing import TrajectoryLimits, blend_from_state, time_parameterize
 from robonav.services.common import open_session
 from robonav.services.config import ZenohConfig, load_config
-from robonav.services.setpoint_stream import SetpointStream, SetpointTable, sample_table
+from robonav.services.setpoint_stream import SetpointStream, SetpointTable, sample_table, wall_from_monotonic
 
 from .conftest import free_port
 
@@ -69,7 +69,7 @@ def _rows_at_stamps(table: SetpointTable, setpoints: list[Setpoint], period_s: f
 
     Stamps are grid times: row k of a table is stamped k periods after its start (the rest
     state may come later than its time when the loop was late past the end)."""
-    wall_from_monotonic_s = time.time() - time.monotonic()
+    wall_from_monotonic_s = wall_from_monotonic()
     ticks = (np.array([s.stamp for s in setpoints]) - wall_from_monotonic_s - table.start_s) / period_s
     np.testing.assert_allclose(ticks, np.round(ticks), atol=0.05)
     rows = np.minimum(np.round(ticks).astype(int), len(table.position) - 1)
