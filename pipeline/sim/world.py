@@ -299,6 +299,11 @@ class SimWorld:
         """
         return render_depth(self._live_client(), self._camera if camera is None else camera)
 
+    def pixels_of(self, name: str, cameras: Sequence[CameraConfig]) -> list[int]:
+        """How many pixels of obstacle `name` each camera shows, past the arm and the other obstacles."""
+        body = self._body(name)
+        return [int(np.count_nonzero(self.render_depth(camera).segmentation == body)) for camera in cameras]
+
     def body_labels(self) -> dict[int, str]:
         """Body unique id -> obstacle name, or 'robot' for the arm."""
         return {self._robot: "robot", **self._obstacles}

@@ -198,6 +198,20 @@ def test_segmentation_labels_identify_objects_and_background() -> None:
     assert np.all(np.isfinite(frame.depth_m[frame.segmentation >= 0]))
 
 
+def test_pixels_of_an_object_count_what_each_camera_sees_past_the_others() -> None:
+    behind = SceneObject("behind", "box", (0.5, 0.3, 0.3), size_m=(0.1, 0.1, 0.1))
+    # Between the camera and the box, tall and wide enough to hide it completely.
+    screen = SceneObject("screen", "box", (1.1, 0.25, 0.55), size_m=(0.05, 0.8, 1.1))
+    with make_world(behind) as world:
+        seen = world.pixels_of("behind", [SMALL_CAMERA, CAMERA])
+        world.add_object(screen)
+        hidden = world.pixels_of("behind", [SMALL_CAMERA])
+        with pytest.raises(ValueError, match="no obstacle named"):
+            world.pixels_of("ghost", [SMALL_CAMERA])
+    assert seen[0] > 100 and seen[1] > 3 * seen[0]  # 4x the pixels at 640x480
+    assert hidden == [0]
+
+
 @pytest.mark.parametrize(("obj", "inside_tolerance_m"), [
     (SceneObject("ball", "sphere", (0.7, -0.3, 0.3), radius_m=0.1), 0.01),
     (SceneObject("can", "cylinder", (0.7, -0.3, 0.3), quat_xyzw=(0.3, 0.0, 0.0, 1.0), radius_m=0.08, length_m=0.3), 0.01),
