@@ -8,8 +8,11 @@ One stack runs the whole campaign; scenes are swapped in at run time (`sim/objec
 (some only by a detour): every link at the goal keeps padding + inflation + a voxel diagonal
 from the true objects, the most the map can add around a surface. A reference planner on the
 truth with that margin decides which goals are feasible. In `M` scenes a box slides onto the
-path while the arm moves, never to rest within that margin of the goal; a goal the box makes
-unreachable for the reference planner counts as unreachable, not as a failure. Reports contacts (pybullet ground
+path as the arm starts: it rests early enough to be avoided, where a camera sees it, and never
+within that margin of the goal. Those goals are driven at `MOVING_SPEED_FACTOR` of the
+campaign's speed, and goals and plans are drawn again until the path leaves room for such a
+box. A goal the box makes unreachable for the reference planner counts as unreachable, not as
+a failure. Reports contacts (pybullet ground
 truth), setpoint limit violations, the smallest true clearance, planning time, perception
 latency and replans. Exit code 0 when nothing touched and no setpoint broke a limit.
 """
@@ -37,7 +40,7 @@ from robonav.pipeline.planning.mbm import parse_mbm
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.sim.scenes import Scene, clutter_scene, mbm_scenes, scene_from_mapping
 from robonav.services.campaign_monitors import Monitors
-from robonav.services.campaign_scene import SceneRunner
+from robonav.services.campaign_scene import MOVING_SPEED_FACTOR, SceneRunner
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.common import open_session, setup_logging
 from robonav.services.config import RobonavConfig, default_config_path, load_config
@@ -167,6 +170,8 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
         "moving_scenes": len(moving), "moving_contacts": sum(s["contacts"] for s in moving),
         "moving_goals": sum(g["moving"] for g in goals), "intruders": sum(g.get("intruder", False) for g in goals),
         "moving_goals_reached": sum(g["reached"] for g in goals if g["moving"]),
+        "moving_speed_factor": MOVING_SPEED_FACTOR,
+        "start_escapes": sum(g.get("start_escapes", 0) for g in goals),
         "limit_violations": monitors.limit_violations, "setpoints_checked": monitors.setpoints,
         "limit_violation_examples": monitors.violation_examples,
         "min_clearance_m": round(min(distances), 4) if distances else None,
@@ -209,7 +214,8 @@ def _count(items: list[str]) -> dict[str, int]:
 
 def table(summary: dict[str, Any]) -> str:
     rows = [
-        ("scenes (moving obstacle)", f"{summary['scenes']} ({summary['moving_scenes']})"),
+        ("scenes (moving obstacle / box slid in)",
+         f"{summary['scenes']} ({summary['moving_scenes']} / {summary.get('intruders', 0)})"),
         ("goals: feasible / unreachable", f"{summary['goals']}: {summary['goals_feasible']} / {summary['goals_unreachable']}"),
         ("reached (of feasible)", f"{summary['goals_reached_feasible']} / {summary['goals_feasible']}"
                                   f" ({100 * (summary['reached_of_feasible'] or 0):.1f} %)"),
@@ -274,6 +280,8 @@ def run_campaign(args: argparse.Namespace, cfg: RobonavConfig, config_path: Path
             except KeyboardInterrupt:  # Ctrl-C or SIGTERM: report the scenes that finished
                 interrupted = True
                 log.warning("interrupted after %d scenes", len(records))
+            finally:
+                runner.close()
             progress.close()
             stats = client.query(client.keys.sim_stats, SimStatsRequest(), SimStatsResponse, 10.0)
             summary = summarize(records, monitors, cfg, args, time.monotonic() - started,

@@ -19,14 +19,16 @@ from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.messages import (ErrorReply, ExecuteResponse, ObjectMotionSpec,
                                        PerceptionClearRequest, PerceptionClearResponse, PlanResponse, SimObjectsRequest,
                                        SimObjectsResponse)
-from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
+from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanOutcome, PlanProblem
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.sim.goals import intruder_for_trajectory, perceivable_objects, sample_goal
+from robonav.pipeline.sim.goals import Intruder, intruder_for_trajectory, perceivable_objects, sample_goal
 from robonav.pipeline.trajectory.execution import PATH_BLOCKED
 from robonav.pipeline.trajectory.path_guard import PathGuard
+from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.scenes import Scene
+from robonav.pipeline.sim.world import SimWorld
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.config import RobonavConfig
@@ -48,6 +50,17 @@ INTRUDER_LEAD_S = 1.2
 """The box rests on the path at least this long before any link would come within 10 cm of it:
 time for a frame, a map, the guard's check and a stop (a box hitting an arm that cannot get
 away in time tests nothing)."""
+MOVING_GOAL_DRAWS = 20
+"""Goals drawn in a moving scene until one leaves room for an intruder."""
+INTRUDER_MIN_PIXELS = 100
+"""Pixels of the resting box at least one camera must show (a 10 cm box 1.2 m from a 320x240
+camera fills about 500)."""
+MOVING_PLANS = 5
+"""Plans asked for a moving scene's goal until one leaves room for an intruder."""
+MOVING_SPEED_FACTOR = 0.5
+"""A moving scene's goal is driven at this share of the campaign's speed: at full speed most
+paths take under 3 s, and few leave a place where the box can rest 1.7 s in (slide and lead)
+that the arm reaches later and that is not beside the goal."""
 
 
 @dataclass
@@ -77,6 +90,8 @@ class GoalRecord:
     reached: bool = False
     result: str = ""
     replans: int = 0
+    start_escapes: int = 0
+    """Plans that first left the padding around the map at the start (PlanResponse.start_escaped)."""
     guard_stops: int = 0
     planning_ms: list[float] = field(default_factory=list)
     plan_min_clearance_m: float | None = None
@@ -110,6 +125,9 @@ class SceneRunner:
         self._view_objects: tuple[SceneObject, ...] = ()
         self._intruder_at_rest: SceneObject | None = None
         self._goal_check = CollisionWorld(self.robot, padding_m=self.margin_m, broad_phase=False)
+        # The cameras' view of the true scene, without noise: an intruder must rest where one
+        # of them sees it (a box in a blind spot tests the camera layout, not the pipeline).
+        self._eyes = SimWorld(cfg.robot, cfg.cameras[0], SimConfig(follow="kinematic", gravity=False))
         self.frame_period_s = max(1.0 / c.rate_hz for c in cfg.cameras)
         self.link = cfg.robot.end_effector_link
         self.plan_seq = 0
@@ -118,6 +136,9 @@ class SceneRunner:
         self._intruder_rest_at = 0.0
         if self.guard is not None:  # compile its kinematics now, not while the arm moves
             self.guard.warm_up(self.home)
+
+    def close(self) -> None:
+        self._eyes.close()
 
     # --- queries --------------------------------------------------------------------------
 
@@ -197,6 +218,7 @@ class SceneRunner:
         self.view.set_objects(self._view_objects)
         truth = self.truth
         truth.set_objects(scene.objects)
+        self._eyes.set_objects(scene.objects)
         top_z = max((o.position_m[2] + o.local_bounds_m[1][2] for o in scene.objects if o.name == "table"), default=0.0)
         region_min = np.array(self.cfg.perception.workspace_min_m, dtype=np.float64)
         region_max = np.array(self.cfg.perception.workspace_max_m, dtype=np.float64)
@@ -205,21 +227,21 @@ class SceneRunner:
         goals = [np.asarray(g, float) for g in scene.goals_rad][: self.goals_per_scene]
         for g in range(self.goals_per_scene if not goals else len(goals)):
             start = self._q()
+            seed = self.seed + index * 100 + g
             if goals:
                 goal, detour = goals[g], not truth.motion_valid(start, goals[g], 0.01)
+                reference = self.reference.plan(PlanProblem(start_rad=start, goals_rad=goal, allowed_planning_time_s=2.0,
+                                                            seed=seed))
             else:
-                sample = sample_goal(self.view, rng, start, link=self.link, region_min_m=region_min,
-                                     region_max_m=region_max, min_clearance_m=self.margin_m,
-                                     want_blocked=(g % 2 == 0) or None)
-                if sample is None:
-                    sample = sample_goal(self.view, rng, start, link=self.link, region_min_m=region_min,
-                                         region_max_m=region_max, min_clearance_m=self.margin_m)
-                if sample is None:
+                # A moving scene's goal must leave room for the box: one whose way is too short
+                # for it to rest ahead of the arm would test nothing, so another is drawn.
+                drawn = self._draw_goal(index, g, start, rng, region_min, region_max, seed,
+                                        draws=MOVING_GOAL_DRAWS if moving and g == 0 else 1)
+                if drawn is None:
                     log.warning("scene %d: no goal found", index)
                     continue
-                goal, detour = sample.q, not truth.motion_valid(start, sample.q, 0.01)
-            reference = self.reference.plan(PlanProblem(start_rad=start, goals_rad=goal, allowed_planning_time_s=2.0,
-                                                        seed=self.seed + index * 100 + g))
+                goal, reference = drawn
+                detour = not truth.motion_valid(start, goal, 0.01)
             record = GoalRecord(index, g, np.round(goal, 4).tolist(), reference.status is PlanStatus.SUCCESS, detour,
                                 moving=moving and g == 0)
             self._intruder_at_rest = None
@@ -240,6 +262,68 @@ class SceneRunner:
                 "contacts": contacts.contact_count, "contact_pairs": list(contacts.pairs),
                 "min_distance_m": contacts.min_distance_m, "min_distance_pair": contacts.min_distance_pair, "goals": [r.__dict__ for r in records],
                 "wall_s": round(time.monotonic() - started, 2)}
+
+    def _draw_goal(self, index: int, g: int, start: np.ndarray, rng: np.random.Generator, region_min: np.ndarray,
+                   region_max: np.ndarray, seed: int, draws: int) -> tuple[np.ndarray, PlanOutcome] | None:
+        """A random goal (every other one needing a detour) and the reference plan to it. With
+        `draws` > 1, goals are drawn until the reference path has room for an intruder; the
+        last one drawn is kept when none has."""
+        drawn: tuple[np.ndarray, PlanOutcome] | None = None
+        for _ in range(draws):
+            sample = sample_goal(self.view, rng, start, link=self.link, region_min_m=region_min,
+                                 region_max_m=region_max, min_clearance_m=self.margin_m,
+                                 want_blocked=(g % 2 == 0) or None)
+            if sample is None:
+                sample = sample_goal(self.view, rng, start, link=self.link, region_min_m=region_min,
+                                     region_max_m=region_max, min_clearance_m=self.margin_m)
+            if sample is None:
+                continue
+            reference = self.reference.plan(PlanProblem(start_rad=start, goals_rad=sample.q, allowed_planning_time_s=2.0,
+                                                        seed=seed))
+            drawn = (sample.q, reference)
+            if draws == 1 or (reference.path is not None and self._intruder_for(reference.path) is not None):
+                return drawn
+        if draws > 1:
+            log.warning("scene %d: no goal in %d draws leaves room for an intruder", index, draws)
+        return drawn
+
+    def _scaling(self, *, moving: bool) -> tuple[float, float]:
+        """Velocity and acceleration scaling for a goal's motions (MoveIt's factors)."""
+        velocity = self.scaling or self.cfg.executor.velocity_scaling
+        acceleration = self.scaling or self.cfg.executor.acceleration_scaling
+        factor = MOVING_SPEED_FACTOR if moving else 1.0
+        return velocity * factor, acceleration * factor
+
+    def _intruder_for(self, path: np.ndarray) -> Intruder | None:
+        """Where a box can slide onto `path` as the arm starts (timed with the executor's own
+        parameterization), resting on the way, not at the goal, early enough to avoid, and where
+        a camera sees it (`INTRUDER_MIN_PIXELS`) past the scene and the arm as it comes to rest."""
+        velocity_scaling, acceleration_scaling = self._scaling(moving=True)
+        trajectory = time_parameterize(
+            path, max_velocity=self.robot.velocity_limits, max_acceleration=self.robot.acceleration_limits,
+            max_jerk=self.robot.jerk_limits, velocity_scaling=velocity_scaling,
+            acceleration_scaling=acceleration_scaling,
+            max_path_deviation_rad=self.cfg.executor.max_path_deviation_rad)
+        times, q, _, _ = trajectory.sample_uniform(0.05)
+        at_rest = q[min(int(np.searchsorted(times, INTRUDER_SLIDE_S)), len(q) - 1)]
+
+        def unfit(box: SceneObject) -> bool:
+            # The box blocks the way, not the goal: resting on or beside the goal, it would make
+            # the goal unreachable rather than test a stop and a detour.
+            self._goal_check.set_objects([box])
+            return self._goal_check.in_collision(path[-1]) or self._pixels_seen(box, at_rest) < INTRUDER_MIN_PIXELS
+
+        return intruder_for_trajectory(self.robot, times, q, link=self.link, slide_s=INTRUDER_SLIDE_S,
+                                       min_lead_s=INTRUDER_LEAD_S, reject=unfit)
+
+    def _pixels_seen(self, box: SceneObject, q: np.ndarray) -> int:
+        """The most pixels of `box` any camera shows, the arm at `q` and the scene in front of it."""
+        self._eyes.set_joint_positions(q)
+        self._eyes.add_object(box)
+        try:
+            return max(self._eyes.pixels_of(box.name, self.cfg.cameras))
+        finally:
+            self._eyes.remove_object(box.name)
 
     def _reachable_with(self, box: SceneObject, start: np.ndarray, goal: np.ndarray, record: GoalRecord) -> bool:
         """Whether the reference planner still reaches `goal` from `start` with `box` added: a goal
@@ -269,7 +353,12 @@ class SceneRunner:
                     break
                 continue
             assert isinstance(plan, PlanResponse)
+            intruder = None
+            if record.moving and not armed:
+                # Worked out before the arm starts: the box slides as the arm does.
+                plan, intruder = self._plan_with_room(goal, plan)
             record.planning_ms.append(round(plan.planning_time_s * 1e3, 2))
+            record.start_escapes += plan.start_escaped
             if plan.min_clearance_m is not None:
                 record.plan_min_clearance_m = round(min(plan.min_clearance_m, record.plan_min_clearance_m or np.inf), 4)
             true_clearance = self.truth.path_clearance_m(plan.path, self.cfg.planner.edge_resolution_rad)
@@ -277,8 +366,8 @@ class SceneRunner:
                 record.plan_true_clearance_m = round(min(true_clearance, record.plan_true_clearance_m or np.inf), 4)
             trajectory_id = f"campaign-{record.scene}-{record.index}-{attempt}-{self.plan_seq}"
             fields: dict[str, Any] = {"joint_names": plan.joint_names, "trajectory_id": trajectory_id}
-            if self.scaling is not None:
-                fields.update(max_velocity_scaling_factor=self.scaling, max_acceleration_scaling_factor=self.scaling)
+            velocity_scaling, acceleration_scaling = self._scaling(moving=record.moving)
+            fields.update(max_velocity_scaling_factor=velocity_scaling, max_acceleration_scaling_factor=acceleration_scaling)
             execution = self.client.execute(plan.path, **fields)
             if isinstance(execution, ErrorReply):
                 record.errors.append(f"execute:{execution.code}")
@@ -288,7 +377,7 @@ class SceneRunner:
             assert isinstance(execution, ExecuteResponse)
             if record.moving and not armed:
                 self._intruder_rest_at = time.time() + INTRUDER_SLIDE_S
-                record.intruder = self._arm_intruder(plan.path, trajectory_id, record)
+                record.intruder = self._arm_intruder(intruder, trajectory_id, record)
                 armed = True
             record.result = self._follow(trajectory_id, plan.path, execution.duration_s, record)
             if record.result == "succeeded":
@@ -299,6 +388,20 @@ class SceneRunner:
                 if record.reached:
                     return True
         return False
+
+    def _plan_with_room(self, goal: np.ndarray, plan: PlanResponse) -> tuple[PlanResponse, Intruder | None]:
+        """`plan`, or another plan to `goal` (the planner is randomized) that leaves room for an
+        intruder, and the intruder; up to `MOVING_PLANS` plans."""
+        for _ in range(MOVING_PLANS - 1):
+            intruder = self._intruder_for(plan.path)
+            if intruder is not None:
+                return plan, intruder
+            self.plan_seq += 1
+            again = self.client.plan(goal, seed=self.seed + self.plan_seq, request_id=f"campaign-{self.plan_seq}")
+            if not isinstance(again, PlanResponse):
+                break
+            plan = again
+        return plan, self._intruder_for(plan.path)
 
     def _follow(self, trajectory_id: str, path: np.ndarray, duration_s: float, record: GoalRecord) -> str:
         """Wait for the trajectory to end; with the guard on, stop it when a new map blocks the rest."""
@@ -349,27 +452,10 @@ class SceneRunner:
                 return "guard_stop"
         return "timeout"
 
-    def _arm_intruder(self, path: np.ndarray, trajectory_id: str, record: GoalRecord) -> bool:
-        """Slide a box onto the path as the arm starts, resting at least `INTRUDER_LEAD_S` before any
-        link would come near it (timed with the executor's own parameterization of the path)."""
-        scaling = self.scaling
-        trajectory = time_parameterize(
-            path, max_velocity=self.robot.velocity_limits, max_acceleration=self.robot.acceleration_limits,
-            max_jerk=self.robot.jerk_limits,
-            velocity_scaling=scaling or self.cfg.executor.velocity_scaling,
-            acceleration_scaling=scaling or self.cfg.executor.acceleration_scaling,
-            max_path_deviation_rad=self.cfg.executor.max_path_deviation_rad)
-        times, q, _, _ = trajectory.sample_uniform(0.05)
-        # The box blocks the way, not the goal: resting on or beside the goal, it would make the
-        # goal unreachable rather than test a stop and a detour.
-        def at_goal(box: SceneObject) -> bool:
-            self._goal_check.set_objects([box])
-            return self._goal_check.in_collision(path[-1])
-
-        intruder = intruder_for_trajectory(self.robot, times, q, link=self.link, slide_s=INTRUDER_SLIDE_S,
-                                           min_lead_s=INTRUDER_LEAD_S, reject=at_goal)
+    def _arm_intruder(self, intruder: Intruder | None, trajectory_id: str, record: GoalRecord) -> bool:
+        """Slide `intruder` onto the path as the arm starts (see `_intruder_for`)."""
         if intruder is None:
-            log.info("%s: too short for an avoidable intruder", trajectory_id)
+            log.warning("%s: no room for an avoidable intruder on the planned path", trajectory_id)
             return False
         record.intruder_lead_s = round(intruder.lead_s, 2)
         self._objects(SimObjectsRequest(operation="add", objects=(object_spec(intruder.start),)))
