@@ -58,6 +58,8 @@ def add_parser(kinds: Any) -> None:  # noqa: ANN401 - argparse's private subpars
     parser.add_argument("--busy-wait", type=float, default=None, help="executor.busy_wait_s override [s]")
     parser.add_argument("--realtime-priority", type=int, default=None,
                         help="executor.realtime_priority override (SCHED_FIFO 1-99; needs CAP_SYS_NICE)")
+    parser.add_argument("--cpu", type=int, default=None,
+                        help="executor.cpu_affinity override: pin the setpoint loop (and the reference loop) to this CPU")
     parser.add_argument("--perception-hz", type=float, default=0.0,
                         help="run the perception service in another process, fed depth images at this rate (0: off)")
     parser.add_argument("--drops", type=int, default=0,
@@ -278,7 +280,8 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
         if reference_loop:
             reference_conn, reference_child = spawn.Pipe()
             reference = spawn.Process(target=run_reference_loop, daemon=True, args=(
-                1.0 / cfg.executor.rate_hz, cfg.executor.realtime_priority, reference_stop, reference_child))
+                1.0 / cfg.executor.rate_hz, cfg.executor.realtime_priority, reference_stop, reference_child,
+                cfg.executor.cpu_affinity))
             reference.start()
             helpers.append(reference)
             if not reference_conn.poll(60.0) or reference_conn.recv() != "ready":
@@ -387,6 +390,8 @@ def main(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, executor=dataclasses.replace(cfg.executor, rate_hz=args.rate))
     if args.busy_wait is not None:
         cfg = dataclasses.replace(cfg, executor=dataclasses.replace(cfg.executor, busy_wait_s=args.busy_wait))
+    if args.cpu is not None:
+        cfg = dataclasses.replace(cfg, executor=dataclasses.replace(cfg.executor, cpu_affinity=(args.cpu,)))
     if args.realtime_priority is not None:
         cfg = dataclasses.replace(cfg, executor=dataclasses.replace(cfg.executor, realtime_priority=args.realtime_priority))
     robot = RobotModel.from_config(cfg.robot)
@@ -394,7 +399,7 @@ def main(args: argparse.Namespace) -> int:
     periods = period_errors(cfg, robot, args.seconds, args.seed, perception_hz=args.perception_hz, config_path=args.config,
                             drops=args.drops, reference_loop=args.reference_loop)
     report = {"rate_hz": cfg.executor.rate_hz, "seconds": args.seconds, "busy_wait_s": cfg.executor.busy_wait_s,
-              "realtime_priority": cfg.executor.realtime_priority,
+              "realtime_priority": cfg.executor.realtime_priority, "cpu_affinity": list(cfg.executor.cpu_affinity),
               "period_error_ms": {k: periods[k] for k in ("p50", "p99", "max")}, "missed": periods["missed"],
               "setpoints": periods["setpoints"], "executes": periods["executes"], "max_at_s": periods["max_at_s"],
               "mean_period_ms": periods["mean_period_ms"],

@@ -17,13 +17,16 @@ from typing import Any
 
 import numpy as np
 
-from robonav.services.setpoint_stream import set_real_time_priority
+from robonav.services.setpoint_stream import pin_thread, set_real_time_priority
 
 
-def run_reference_loop(period_s: float, priority: int, stop: Any, conn: Any) -> None:  # noqa: ANN401 - multiprocessing objects
+def run_reference_loop(period_s: float, priority: int, stop: Any, conn: Any,  # noqa: ANN401 - multiprocessing objects
+                       cpus: tuple[int, ...] = ()) -> None:
     """Process body: send "ready", tick every `period_s` on the monotonic clock until `stop` is
-    set, then send the (N,) wake-up times [s] through `conn`."""
+    set, then send the (N,) wake-up times [s] through `conn`. On `cpus` when given (the stream's:
+    then both loops live through the same CPU's stalls)."""
     set_real_time_priority(priority)
+    pin_thread(cpus)
     conn.send("ready")
     capacity = 1 << 20
     times = np.zeros(capacity)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -72,6 +73,9 @@ class ExecutorConfig:
     """SCHED_FIFO priority (1-99) of the setpoint stream's loop; 0 leaves it at normal priority.
     Needs CAP_SYS_NICE or an RLIMIT_RTPRIO that allows it (`ulimit -r`, compose `ulimits:
     rtprio`); without either the stream logs a warning and runs at normal priority."""
+    cpu_affinity: tuple[int, ...] = ()
+    """CPUs the setpoint stream's loop may run on (ros2_control's `cpu_affinity`); empty: any.
+    Its Zenoh threads stay free to run elsewhere."""
     command_lead_s: float = 0.01
     """A new trajectory (execute, stop, replan) takes over this long after the command: the time
     to sample it and hand it to the setpoint stream's process, so the switch is exact [s]."""
@@ -102,6 +106,9 @@ class ExecutorConfig:
         require(self.max_path_deviation_rad >= 0,
                 f"executor.max_path_deviation_rad must be >= 0, got {self.max_path_deviation_rad}")
         require(0 <= self.realtime_priority <= 99, f"executor.realtime_priority must be in [0, 99], got {self.realtime_priority}")
+        cpus = os.cpu_count() or 1
+        require(all(isinstance(c, int) and 0 <= c < cpus for c in self.cpu_affinity),
+                f"executor.cpu_affinity must list CPUs in [0, {cpus - 1}], got {list(self.cpu_affinity)}")
         require(0 < self.command_lead_s <= 0.5, f"executor.command_lead_s must be in (0, 0.5], got {self.command_lead_s}")
         require(self.path_check_rate_hz > 0, f"executor.path_check_rate_hz must be > 0, got {self.path_check_rate_hz}")
         require(self.replan_attempts >= 1, f"executor.replan_attempts must be >= 1, got {self.replan_attempts}")

@@ -93,7 +93,7 @@ class ExecutorNode(Node):
         self._stream = SetpointStream(cfg.zenoh, keys.setpoint, tuple(self.robot.joint_names), rate_hz=cfg.executor.rate_hz,
                                       busy_wait_s=cfg.executor.busy_wait_s,
                                       realtime_priority=cfg.executor.realtime_priority, limits=limits,
-                                      keep_times=keep_stream_times)
+                                      keep_times=keep_stream_times, cpu_affinity=cfg.executor.cpu_affinity)
         self._streamed_revision = 0
         self._to_stream: queue.SimpleQueue[tuple[JointTrajectory | None, float, str] | None] = queue.SimpleQueue()
         self._feeder = threading.Thread(target=self._feed_stream, name="executor-stream-feeder", daemon=True)

@@ -103,6 +103,7 @@ class _StreamSpec:
     origin_s: float
     busy_wait_s: float
     realtime_priority: int
+    cpu_affinity: tuple[int, ...]
     limits: TrajectoryLimits
     """Full limits for braking when orphaned."""
     keep_times: int
@@ -113,7 +114,8 @@ class SetpointStream:
     """The parent's handle on the streaming process."""
 
     def __init__(self, zenoh: ZenohConfig, key: str, joint_names: tuple[str, ...], *, rate_hz: float,
-                 busy_wait_s: float, realtime_priority: int, limits: TrajectoryLimits, keep_times: int = 0) -> None:
+                 busy_wait_s: float, realtime_priority: int, limits: TrajectoryLimits, keep_times: int = 0,
+                 cpu_affinity: tuple[int, ...] = ()) -> None:
         """Start the process and wait until its session is up.
 
         Args:
@@ -124,6 +126,7 @@ class SetpointStream:
             rate_hz: Setpoint rate [Hz].
             busy_wait_s: Poll the clock this long before each tick instead of sleeping [s].
             realtime_priority: SCHED_FIFO priority for the loop (0: normal).
+            cpu_affinity: CPUs the loop (and its pipe reader) may run on; empty: any.
             limits: The robot's full limits (braking when orphaned).
             keep_times: Keep up to this many publish times for `stats` (benchmarks).
 
@@ -136,7 +139,7 @@ class SetpointStream:
         spec = _StreamSpec(dataclasses.replace(zenoh, mode="client" if zenoh.mode == "router" else zenoh.mode,
                                                connect=connect, listen=()),
                            key, tuple(joint_names), self.period_s, self.origin_s, busy_wait_s, realtime_priority,
-                           limits, keep_times, logging.getLogger("robonav").getEffectiveLevel())
+                           tuple(cpu_affinity), limits, keep_times, logging.getLogger("robonav").getEffectiveLevel())
         context = multiprocessing.get_context("spawn")  # never fork a process with Zenoh's threads
         self._conn, child = context.Pipe()
         self._send_lock = threading.Lock()
@@ -150,6 +153,11 @@ class SetpointStream:
         if answer != "ready":
             self._process.terminate()
             raise RuntimeError(f"the setpoint stream process did not start: {answer}")
+
+    @property
+    def pid(self) -> int | None:
+        """The streaming process's id."""
+        return self._process.pid
 
     def next_tick(self, t_s: float) -> float:
         """The first tick of the stream's grid at or after time.monotonic() `t_s` [s]."""
@@ -280,6 +288,7 @@ class _Loop:
         # The reader inherits the loop's scheduling class: at normal priority it could be
         # preempted while holding the GIL, and the real-time loop would wait for it.
         set_real_time_priority(spec.realtime_priority)
+        pin_thread(spec.cpu_affinity)
         reader = threading.Thread(target=self.receive, name="setpoint-stream-reader", daemon=True)
         reader.start()
         # What the loop allocates (setpoints, their bytes) holds no cycles: a collection pass
@@ -381,6 +390,21 @@ def _run(spec: _StreamSpec, conn: Any) -> None:  # noqa: ANN401 - a multiprocess
     logging.basicConfig(level=spec.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
     _Loop(spec, conn).run()
+
+
+def pin_thread(cpus: tuple[int, ...]) -> None:
+    """Let the calling thread (and threads it starts later) run only on `cpus` (empty: leave it).
+
+    With the loop on a CPU of its own (best with `isolcpus`), other work cannot delay it, and a
+    reference loop on the same CPU (`robonav bench executor --reference-loop`) shares exactly
+    the stalls the machine gives it."""
+    if not cpus or not hasattr(os, "sched_setaffinity"):
+        return
+    try:
+        os.sched_setaffinity(0, set(cpus))  # 0: this thread on Linux
+        log.info("setpoint loop pinned to CPUs %s", sorted(cpus))
+    except OSError as exc:
+        log.warning("setpoint loop not pinned to CPUs %s: %s", sorted(cpus), exc)
 
 
 def set_real_time_priority(priority: int) -> None:

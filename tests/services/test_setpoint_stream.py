@@ -3,6 +3,7 @@ a new table takes over at its start time, and closing mid-motion brakes to rest.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Iterator
@@ -136,3 +137,16 @@ def test_closing_mid_motion_brakes_to_rest_within_the_limits(stream: tuple[Setpo
     dt = np.diff([s.stamp for s in setpoints])
     assert np.all(dt >= handle.period_s - 1e-4)
     assert np.all(np.abs(np.diff(velocity, axis=0)) <= LIMITS.acceleration * (dt[:, None] + 1e-4))
+
+
+def test_the_loop_runs_on_the_cpus_it_is_pinned_to() -> None:
+    cpu = (os.cpu_count() or 1) - 1
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
+    handle = SetpointStream(ZenohConfig(connect=(endpoint,)), KEY, NAMES, rate_hz=1000.0, busy_wait_s=0.0,
+                            realtime_priority=0, limits=LIMITS, cpu_affinity=(cpu,))
+    try:
+        assert handle.pid is not None and os.sched_getaffinity(handle.pid) == {cpu}
+    finally:
+        handle.close()
+        router.close()
