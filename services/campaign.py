@@ -9,7 +9,7 @@ One stack runs the whole campaign; scenes are swapped in at run time (`sim/objec
 from the true objects, the most the map can add around a surface. A reference planner on the
 truth with that margin decides which goals are feasible. In `M` scenes a box slides onto the
 path as the arm starts: it rests early enough to be avoided, where a camera sees it, and never
-within that margin of the goal. Those goals are driven at `MOVING_SPEED_FACTOR` of the
+within that margin of the goal. Those goals are driven at `--moving-speed` (0.5) of the
 campaign's speed, and goals and plans are drawn again until the path leaves room for such a
 box. A goal the box makes unreachable for the reference planner counts as unreachable, not as
 a failure. Reports contacts (pybullet ground
@@ -72,10 +72,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--no-guard", action="store_true",
                         help="do not stop and replan when a new map blocks the rest of the path")
     parser.add_argument("--velocity-scaling", type=float, help="scaling of velocity and acceleration limits")
+    parser.add_argument("--moving-speed", type=float, default=MOVING_SPEED_FACTOR,
+                        help="a moving scene's goal is driven at this share of the campaign's speed "
+                             f"(default {MOVING_SPEED_FACTOR}: at full speed few paths leave room for the box)")
     parser.add_argument("--log-level", default="WARNING")
     args = parser.parse_args(argv)
     if args.scenes < 1 or args.goals_per_scene < 1:
         parser.error("--scenes and --goals-per-scene must be >= 1")
+    if not 0 < args.moving_speed <= 1:
+        parser.error("--moving-speed must be in (0, 1]")
     if args.source != "clutter" and not args.scene_dir:
         parser.error(f"--source {args.source} needs --scene-dir")
     return args
@@ -170,7 +175,7 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
         "moving_scenes": len(moving), "moving_contacts": sum(s["contacts"] for s in moving),
         "moving_goals": sum(g["moving"] for g in goals), "intruders": sum(g.get("intruder", False) for g in goals),
         "moving_goals_reached": sum(g["reached"] for g in goals if g["moving"]),
-        "moving_speed_factor": MOVING_SPEED_FACTOR,
+        "moving_speed_factor": args.moving_speed,
         "start_escapes": sum(g.get("start_escapes", 0) for g in goals),
         "limit_violations": monitors.limit_violations, "setpoints_checked": monitors.setpoints,
         "limit_violation_examples": monitors.violation_examples,
@@ -253,7 +258,8 @@ def run_campaign(args: argparse.Namespace, cfg: RobonavConfig, config_path: Path
                                    SERVICE_START_TIMEOUT_S):
                 raise RuntimeError("no occupancy map or joint state")
             runner = SceneRunner(cfg, client, goals_per_scene=args.goals_per_scene, guard=not args.no_guard,
-                                 velocity_scaling=args.velocity_scaling, seed=args.seed)
+                                 velocity_scaling=args.velocity_scaling, seed=args.seed,
+                                 moving_speed_factor=args.moving_speed)
             client.query(client.keys.sim_stats, SimStatsRequest(reset=True), SimStatsResponse, 10.0)
             progress = tqdm(total=len(scenes), desc="campaign", unit="scene", file=sys.stderr, mininterval=1.0)
             interrupted, aborted = False, ""

@@ -58,7 +58,7 @@ camera fills about 500)."""
 MOVING_PLANS = 5
 """Plans asked for a moving scene's goal until one leaves room for an intruder."""
 MOVING_SPEED_FACTOR = 0.5
-"""A moving scene's goal is driven at this share of the campaign's speed: at full speed most
+"""A moving scene's goal is driven at this share of the campaign's speed by default: at full speed most
 paths take under 3 s, and few leave a place where the box can rest 1.7 s in (slide and lead)
 that the arm reaches later and that is not beside the goal."""
 
@@ -106,7 +106,7 @@ class SceneRunner:
     """Runs scenes one after another on one stack."""
 
     def __init__(self, cfg: RobonavConfig, client: RobonavClient, *, goals_per_scene: int, guard: bool,
-                 velocity_scaling: float | None, seed: int) -> None:
+                 velocity_scaling: float | None, seed: int, moving_speed_factor: float = MOVING_SPEED_FACTOR) -> None:
         self.cfg = cfg
         self.client = client
         self.robot = RobotModel.from_config(cfg.robot)
@@ -114,6 +114,7 @@ class SceneRunner:
         self.guard = PathGuard(self.robot, padding_m=cfg.robot.padding_m, inflation_m=cfg.perception.inflation_m,
                                edge_resolution_rad=cfg.planner.edge_resolution_rad) if guard else None
         self.scaling = velocity_scaling
+        self.moving_speed_factor = moving_speed_factor
         self.seed = seed
         self.home = np.asarray(cfg.robot.home_position_rad, dtype=np.float64)
         # What the map can allow: padding, inflation and a voxel of quantization on top of the
@@ -291,7 +292,7 @@ class SceneRunner:
         """Velocity and acceleration scaling for a goal's motions (MoveIt's factors)."""
         velocity = self.scaling or self.cfg.executor.velocity_scaling
         acceleration = self.scaling or self.cfg.executor.acceleration_scaling
-        factor = MOVING_SPEED_FACTOR if moving else 1.0
+        factor = self.moving_speed_factor if moving else 1.0
         return velocity * factor, acceleration * factor
 
     def _intruder_for(self, path: np.ndarray) -> Intruder | None:

@@ -54,7 +54,7 @@ def test_the_summary_counts_feasible_goals_contacts_and_clearance() -> None:
         {"index": 1, "scene": "b", "moving": True, "contacts": 1, "min_distance_m": -0.001, "min_distance_pair": "hand|intruder",
          "goals": [goal(False, True, moving=True)]},
     ]
-    args = argparse.Namespace(seed=1, source="clutter", no_noise=False, no_guard=False)
+    args = argparse.Namespace(seed=1, source="clutter", no_noise=False, no_guard=False, moving_speed=0.5)
     summary = summarize(scenes, Monitors(), load_config(), args, 60.0, None)  # type: ignore[arg-type]
     assert set(REQUIRED_FIELDS) <= set(summary)
     assert (summary["goals"], summary["goals_feasible"], summary["goals_reached"], summary["goals_unreachable"]) == (3, 1, 1, 1)
@@ -62,7 +62,8 @@ def test_the_summary_counts_feasible_goals_contacts_and_clearance() -> None:
     assert (summary["contacts"], summary["moving_contacts"], summary["scenes_below_padding"]) == (1, 1, 1)
     assert summary["min_clearance_m"] == -0.001 and summary["closest_pairs"] == {"hand|intruder": 1}
     assert summary["planning_ms"]["p50"] == 20.0 and summary["replans"] == 3
-    assert "reached (of feasible)" in table(summary)
+    assert (summary["intruders"], summary["moving_speed_factor"]) == (1, 0.5)
+    assert "reached (of feasible)" in table(summary) and "2 (1 / 1)" in table(summary)
 
 
 @pytest.fixture(scope="module")
