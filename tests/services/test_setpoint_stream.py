@@ -90,8 +90,10 @@ def test_tables_play_row_by_row_and_hand_over_at_their_start(stream: tuple[Setpo
     table_one = sample_table(first, "one", start, period)
     handle.send(table_one)
     time.sleep(0.3)
-    # Preempt from the state the first table commands at the switch: no jump in p, v or a.
-    switch = handle.next_tick(time.monotonic() + 0.05)
+    # Preempt from the state the first table commands at the switch: no jump in p, v or a. The
+    # lead covers parameterizing, sampling and sending the second table on a loaded machine (CI
+    # once took 128 ms; a table that arrives after its start takes over late).
+    switch = handle.next_tick(time.monotonic() + 0.3)
     q, qd, qdd = first.sample(switch - start)
     second = blend_from_state(time_parameterize(np.array([q, q - 0.3]), max_velocity=LIMITS.velocity,
                                                 max_acceleration=LIMITS.acceleration, max_jerk=LIMITS.jerk,
