@@ -177,6 +177,7 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
         "moving_goals_reached": sum(g["reached"] for g in goals if g["moving"]),
         "moving_speed_factor": args.moving_speed,
         "start_escapes": sum(g.get("start_escapes", 0) for g in goals),
+        "plans_through_box": sum(len(g.get("plans_through_box", [])) for g in goals),
         "limit_violations": monitors.limit_violations, "setpoints_checked": monitors.setpoints,
         "limit_violation_examples": monitors.violation_examples,
         "min_clearance_m": round(min(distances), 4) if distances else None,
@@ -225,6 +226,7 @@ def table(summary: dict[str, Any]) -> str:
         ("reached (of feasible)", f"{summary['goals_reached_feasible']} / {summary['goals_feasible']}"
                                   f" ({100 * (summary['reached_of_feasible'] or 0):.1f} %)"),
         ("robot-obstacle contacts (moving scenes)", f"{summary['contacts']} ({summary['moving_contacts']})"),
+        ("plans through the resting box", f"{summary.get('plans_through_box', 0)}"),
         ("setpoint limit violations", f"{summary['limit_violations']} of {summary['setpoints_checked']}"),
         ("min true clearance / padding", f"{summary['min_clearance_m']} m / {summary['padding_m']} m"
                                          f" ({summary['scenes_below_padding']} scenes below)"),

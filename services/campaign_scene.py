@@ -100,6 +100,10 @@ class GoalRecord:
     """Smallest distance from the unpadded robot along the planned paths to the TRUE obstacles [m]."""
     errors: list[str] = field(default_factory=list)
     final_error_rad: float | None = None
+    plans_through_box: list[dict[str, float]] = field(default_factory=list)
+    """Plans made after the intruder was sent whose path meets the TRUE box at rest: for each, the
+    start's distance from it [m], how many voxels of the newest map lie inside it, and the time
+    since it came to rest [s] (negative: still sliding when planned)."""
 
 
 class SceneRunner:
@@ -126,6 +130,7 @@ class SceneRunner:
         self._view_objects: tuple[SceneObject, ...] = ()
         self._intruder_at_rest: SceneObject | None = None
         self._goal_check = CollisionWorld(self.robot, padding_m=self.margin_m, broad_phase=False)
+        self._box_truth = CollisionWorld(self.robot, padding_m=0.0, broad_phase=False)
         # The cameras' view of the true scene, without noise: an intruder must rest where one
         # of them sees it (a box in a blind spot tests the camera layout, not the pipeline).
         self._eyes = SimWorld(cfg.robot, cfg.cameras[0], SimConfig(follow="kinematic", gravity=False))
@@ -365,6 +370,8 @@ class SceneRunner:
             true_clearance = self.truth.path_clearance_m(plan.path, self.cfg.planner.edge_resolution_rad)
             if np.isfinite(true_clearance):
                 record.plan_true_clearance_m = round(min(true_clearance, record.plan_true_clearance_m or np.inf), 4)
+            if record.intruder and self._intruder_at_rest is not None:
+                self._check_against_box(plan.path, record)
             trajectory_id = f"campaign-{record.scene}-{record.index}-{attempt}-{self.plan_seq}"
             fields: dict[str, Any] = {"joint_names": plan.joint_names, "trajectory_id": trajectory_id}
             velocity_scaling, acceleration_scaling = self._scaling(moving=record.moving)
@@ -389,6 +396,26 @@ class SceneRunner:
                 if record.reached:
                     return True
         return False
+
+    def _check_against_box(self, path: np.ndarray, record: GoalRecord) -> None:
+        """Record a plan whose path meets the resting intruder: the map the planner saw lacked it."""
+        box = self._intruder_at_rest
+        assert box is not None
+        self._box_truth.set_objects([box])
+        if self._box_truth.path_valid(path, self.cfg.planner.edge_resolution_rad):
+            return
+        occupancy = self.client.occupancy
+        voxels = 0
+        if occupancy is not None and len(occupancy.occupied_centers_m):
+            _, half = box.local_bounds_m
+            inside = np.all(np.abs(occupancy.occupied_centers_m - np.asarray(box.position_m)) <= half, axis=1)
+            voxels = int(np.count_nonzero(inside))
+        start_clearance_m = self._box_truth.clearance_m(path[0])
+        record.plans_through_box.append({"start_clearance_m": round(float(start_clearance_m), 4),
+                                         "box_voxels_in_map": voxels,
+                                         "since_rest_s": round(time.time() - self._intruder_rest_at, 3)})
+        log.warning("scene %d: a plan passes through the resting box (start %.3f m from it, %d map voxels inside it)",
+                    record.scene, start_clearance_m, voxels)
 
     def _plan_with_room(self, goal: np.ndarray, plan: PlanResponse) -> tuple[PlanResponse, Intruder | None]:
         """`plan`, or another plan to `goal` (the planner is randomized) that leaves room for an

@@ -52,7 +52,7 @@ def test_the_summary_counts_feasible_goals_contacts_and_clearance() -> None:
         {"index": 0, "scene": "a", "moving": False, "contacts": 0, "min_distance_m": 0.04, "min_distance_pair": "x|y",
          "goals": [goal(True, True), goal(False, False)]},
         {"index": 1, "scene": "b", "moving": True, "contacts": 1, "min_distance_m": -0.001, "min_distance_pair": "hand|intruder",
-         "goals": [goal(False, True, moving=True)]},
+         "goals": [goal(False, True, moving=True) | {"plans_through_box": [{"start_clearance_m": 0.02}]}]},
     ]
     args = argparse.Namespace(seed=1, source="clutter", no_noise=False, no_guard=False, moving_speed=0.5)
     summary = summarize(scenes, Monitors(), load_config(), args, 60.0, None)  # type: ignore[arg-type]
@@ -62,7 +62,7 @@ def test_the_summary_counts_feasible_goals_contacts_and_clearance() -> None:
     assert (summary["contacts"], summary["moving_contacts"], summary["scenes_below_padding"]) == (1, 1, 1)
     assert summary["min_clearance_m"] == -0.001 and summary["closest_pairs"] == {"hand|intruder": 1}
     assert summary["planning_ms"]["p50"] == 20.0 and summary["replans"] == 3
-    assert (summary["intruders"], summary["moving_speed_factor"]) == (1, 0.5)
+    assert (summary["intruders"], summary["moving_speed_factor"], summary["plans_through_box"]) == (1, 0.5, 1)
     assert "reached (of feasible)" in table(summary) and "2 (1 / 1)" in table(summary)
 
 
