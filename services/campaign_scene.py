@@ -224,7 +224,8 @@ class SceneRunner:
         self.view.set_objects(self._view_objects)
         truth = self.truth
         truth.set_objects(scene.objects)
-        self._eyes.set_objects(scene.objects)
+        if moving:  # only moving scenes place a box
+            self._eyes.set_objects(scene.objects)
         top_z = max((o.position_m[2] + o.local_bounds_m[1][2] for o in scene.objects if o.name == "table"), default=0.0)
         region_min = np.array(self.cfg.perception.workspace_min_m, dtype=np.float64)
         region_max = np.array(self.cfg.perception.workspace_max_m, dtype=np.float64)
@@ -370,7 +371,7 @@ class SceneRunner:
             true_clearance = self.truth.path_clearance_m(plan.path, self.cfg.planner.edge_resolution_rad)
             if np.isfinite(true_clearance):
                 record.plan_true_clearance_m = round(min(true_clearance, record.plan_true_clearance_m or np.inf), 4)
-            if record.intruder and self._intruder_at_rest is not None:
+            if self._intruder_at_rest is not None:
                 self._check_against_box(plan.path, record)
             trajectory_id = f"campaign-{record.scene}-{record.index}-{attempt}-{self.plan_seq}"
             fields: dict[str, Any] = {"joint_names": plan.joint_names, "trajectory_id": trajectory_id}
@@ -420,16 +421,16 @@ class SceneRunner:
     def _plan_with_room(self, goal: np.ndarray, plan: PlanResponse) -> tuple[PlanResponse, Intruder | None]:
         """`plan`, or another plan to `goal` (the planner is randomized) that leaves room for an
         intruder, and the intruder; up to `MOVING_PLANS` plans."""
+        intruder = self._intruder_for(plan.path)
         for _ in range(MOVING_PLANS - 1):
-            intruder = self._intruder_for(plan.path)
             if intruder is not None:
-                return plan, intruder
+                break
             self.plan_seq += 1
             again = self.client.plan(goal, seed=self.seed + self.plan_seq, request_id=f"campaign-{self.plan_seq}")
             if not isinstance(again, PlanResponse):
                 break
-            plan = again
-        return plan, self._intruder_for(plan.path)
+            plan, intruder = again, self._intruder_for(again.path)
+        return plan, intruder
 
     def _follow(self, trajectory_id: str, path: np.ndarray, duration_s: float, record: GoalRecord) -> str:
         """Wait for the trajectory to end; with the guard on, stop it when a new map blocks the rest."""
