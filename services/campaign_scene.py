@@ -23,13 +23,11 @@ from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanOutcome,
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.sim.goals import Intruder, intruder_for_trajectory, perceivable_objects, sample_goal
+from robonav.pipeline.sim.goals import Intruder, perceivable_objects, sample_goal
 from robonav.pipeline.trajectory.execution import PATH_BLOCKED
 from robonav.pipeline.trajectory.path_guard import PathGuard
-from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.scenes import Scene
-from robonav.pipeline.sim.world import SimWorld
-from robonav.pipeline.trajectory.timing import time_parameterize
+from robonav.services.campaign_intruder import INTRUDER_SLIDE_S, IntruderPlacer
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.config import RobonavConfig
 from robonav.services.scene_specs import object_spec
@@ -45,16 +43,8 @@ that no longer starts at the measured state)."""
 HOME_TOLERANCE_RAD = 0.05
 MAP_SETTLE_FRAMES = 3
 """Frames of the slowest camera integrated after a scene swap before planning in it."""
-INTRUDER_SLIDE_S = 0.5
-INTRUDER_LEAD_S = 1.2
-"""The box rests on the path at least this long before any link would come within 10 cm of it:
-time for a frame, a map, the guard's check and a stop (a box hitting an arm that cannot get
-away in time tests nothing)."""
 MOVING_GOAL_DRAWS = 20
 """Goals drawn in a moving scene until one leaves room for an intruder."""
-INTRUDER_MIN_PIXELS = 100
-"""Pixels of the resting box at least one camera must show (a 10 cm box 1.2 m from a 320x240
-camera fills about 500)."""
 MOVING_PLANS = 5
 """Plans asked for a moving scene's goal until one leaves room for an intruder."""
 MOVING_SPEED_FACTOR = 0.5
@@ -129,11 +119,8 @@ class SceneRunner:
         self.reference = MotionPlanner(self.robot, self.view, cfg.planner)
         self._view_objects: tuple[SceneObject, ...] = ()
         self._intruder_at_rest: SceneObject | None = None
-        self._goal_check = CollisionWorld(self.robot, padding_m=self.margin_m, broad_phase=False)
         self._box_truth = CollisionWorld(self.robot, padding_m=0.0, broad_phase=False)
-        # The cameras' view of the true scene, without noise: an intruder must rest where one
-        # of them sees it (a box in a blind spot tests the camera layout, not the pipeline).
-        self._eyes = SimWorld(cfg.robot, cfg.cameras[0], SimConfig(follow="kinematic", gravity=False))
+        self._placer = IntruderPlacer(cfg, self.robot, goal_margin_m=self.margin_m)
         self.frame_period_s = max(1.0 / c.rate_hz for c in cfg.cameras)
         self.link = cfg.robot.end_effector_link
         self.plan_seq = 0
@@ -144,7 +131,7 @@ class SceneRunner:
             self.guard.warm_up(self.home)
 
     def close(self) -> None:
-        self._eyes.close()
+        self._placer.close()
 
     # --- queries --------------------------------------------------------------------------
 
@@ -225,7 +212,7 @@ class SceneRunner:
         truth = self.truth
         truth.set_objects(scene.objects)
         if moving:  # only moving scenes place a box
-            self._eyes.set_objects(scene.objects)
+            self._placer.set_scene(scene.objects)
         top_z = max((o.position_m[2] + o.local_bounds_m[1][2] for o in scene.objects if o.name == "table"), default=0.0)
         region_min = np.array(self.cfg.perception.workspace_min_m, dtype=np.float64)
         region_max = np.array(self.cfg.perception.workspace_max_m, dtype=np.float64)
@@ -294,43 +281,15 @@ class SceneRunner:
             log.warning("scene %d: no goal in %d draws leaves room for an intruder", index, draws)
         return drawn
 
+    def _intruder_for(self, path: np.ndarray) -> Intruder | None:
+        return self._placer.place(path, *self._scaling(moving=True))
+
     def _scaling(self, *, moving: bool) -> tuple[float, float]:
         """Velocity and acceleration scaling for a goal's motions (MoveIt's factors)."""
         velocity = self.scaling or self.cfg.executor.velocity_scaling
         acceleration = self.scaling or self.cfg.executor.acceleration_scaling
         factor = self.moving_speed_factor if moving else 1.0
         return velocity * factor, acceleration * factor
-
-    def _intruder_for(self, path: np.ndarray) -> Intruder | None:
-        """Where a box can slide onto `path` as the arm starts (timed with the executor's own
-        parameterization), resting on the way, not at the goal, early enough to avoid, and where
-        a camera sees it (`INTRUDER_MIN_PIXELS`) past the scene and the arm as it comes to rest."""
-        velocity_scaling, acceleration_scaling = self._scaling(moving=True)
-        trajectory = time_parameterize(
-            path, max_velocity=self.robot.velocity_limits, max_acceleration=self.robot.acceleration_limits,
-            max_jerk=self.robot.jerk_limits, velocity_scaling=velocity_scaling,
-            acceleration_scaling=acceleration_scaling,
-            max_path_deviation_rad=self.cfg.executor.max_path_deviation_rad)
-        times, q, _, _ = trajectory.sample_uniform(0.05)
-        at_rest = q[min(int(np.searchsorted(times, INTRUDER_SLIDE_S)), len(q) - 1)]
-
-        def unfit(box: SceneObject) -> bool:
-            # The box blocks the way, not the goal: resting on or beside the goal, it would make
-            # the goal unreachable rather than test a stop and a detour.
-            self._goal_check.set_objects([box])
-            return self._goal_check.in_collision(path[-1]) or self._pixels_seen(box, at_rest) < INTRUDER_MIN_PIXELS
-
-        return intruder_for_trajectory(self.robot, times, q, link=self.link, slide_s=INTRUDER_SLIDE_S,
-                                       min_lead_s=INTRUDER_LEAD_S, reject=unfit)
-
-    def _pixels_seen(self, box: SceneObject, q: np.ndarray) -> int:
-        """The most pixels of `box` any camera shows, the arm at `q` and the scene in front of it."""
-        self._eyes.set_joint_positions(q)
-        self._eyes.add_object(box)
-        try:
-            return max(self._eyes.pixels_of(box.name, self.cfg.cameras))
-        finally:
-            self._eyes.remove_object(box.name)
 
     def _reachable_with(self, box: SceneObject, start: np.ndarray, goal: np.ndarray, record: GoalRecord) -> bool:
         """Whether the reference planner still reaches `goal` from `start` with `box` added: a goal
@@ -482,7 +441,7 @@ class SceneRunner:
         return "timeout"
 
     def _arm_intruder(self, intruder: Intruder | None, trajectory_id: str, record: GoalRecord) -> bool:
-        """Slide `intruder` onto the path as the arm starts (see `_intruder_for`)."""
+        """Slide `intruder` onto the path as the arm starts (see `IntruderPlacer.place`)."""
         if intruder is None:
             log.warning("%s: no room for an avoidable intruder on the planned path", trajectory_id)
             return False
