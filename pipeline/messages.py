@@ -305,6 +305,10 @@ class ExecuteRequest(Message):
     error PATH_BLOCKED."""
     replan_attempts: int | None = None
     """Plans tried per block before giving up; default executor.replan_attempts."""
+    occupancy_stamp: float | None = None
+    """`PlanResponse.occupancy_stamp` of the plan this path came from: the path monitor then
+    watches every voxel that map lacked. Without it, the newest map at acceptance is taken as
+    the one planned on, and voxels that arrived while the plan was in flight go unwatched."""
 
     def __post_init__(self) -> None:
         if self.path.shape[0] < 1:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from robonav.pipeline.collision import CollisionWorld
-from robonav.pipeline.messages import (ErrorReply, ExecuteResponse, ObjectMotionSpec,
+from robonav.pipeline.messages import (ErrorReply, ExecuteResponse, ObjectMotionSpec, Occupancy,
                                        PerceptionClearRequest, PerceptionClearResponse, PlanResponse, SimObjectsRequest,
                                        SimObjectsResponse)
 from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanOutcome, PlanProblem
@@ -312,6 +312,9 @@ class SceneRunner:
                 record.replans += 1
                 self._wait_fresh_map(time.time())
             self.plan_seq += 1
+            # The guard's baseline: the planner plans on this map or a newer one, and a voxel it
+            # never saw must not hide in a baseline taken after the plan came back.
+            planned_on = self.client.occupancy
             plan = self.client.plan(goal, seed=self.seed + self.plan_seq, request_id=f"campaign-{self.plan_seq}")
             if isinstance(plan, ErrorReply):
                 record.errors.append(f"plan:{plan.code}")
@@ -333,7 +336,8 @@ class SceneRunner:
             if self._intruder_at_rest is not None:
                 self._check_against_box(plan.path, record)
             trajectory_id = f"campaign-{record.scene}-{record.index}-{attempt}-{self.plan_seq}"
-            fields: dict[str, Any] = {"joint_names": plan.joint_names, "trajectory_id": trajectory_id}
+            fields: dict[str, Any] = {"joint_names": plan.joint_names, "trajectory_id": trajectory_id,
+                                      "occupancy_stamp": plan.occupancy_stamp}
             velocity_scaling, acceleration_scaling = self._scaling(moving=record.moving)
             fields.update(max_velocity_scaling_factor=velocity_scaling, max_acceleration_scaling_factor=acceleration_scaling)
             execution = self.client.execute(plan.path, **fields)
@@ -347,7 +351,7 @@ class SceneRunner:
                 self._intruder_rest_at = time.time() + INTRUDER_SLIDE_S
                 record.intruder = self._arm_intruder(intruder, trajectory_id, record)
                 armed = True
-            record.result = self._follow(trajectory_id, plan.path, execution.duration_s, record)
+            record.result = self._follow(trajectory_id, plan.path, execution.duration_s, record, planned_on)
             if record.result == "succeeded":
                 self.client.wait_for(lambda: float(np.max(np.abs(self._q() - goal))) <= 0.1 * self.cfg.demo.goal_tolerance_rad,
                                      2.0)
@@ -391,14 +395,15 @@ class SceneRunner:
             plan, intruder = again, self._intruder_for(again.path)
         return plan, intruder
 
-    def _follow(self, trajectory_id: str, path: np.ndarray, duration_s: float, record: GoalRecord) -> str:
-        """Wait for the trajectory to end; with the guard on, stop it when a new map blocks the rest."""
+    def _follow(self, trajectory_id: str, path: np.ndarray, duration_s: float, record: GoalRecord,
+                planned_on: Occupancy | None) -> str:
+        """Wait for the trajectory to end; with the guard on, stop it when a map newer than
+        `planned_on` blocks the rest (the newest map is checked at once)."""
         deadline = time.monotonic() + duration_s + self.cfg.demo.goal_timeout_s
-        seen_seq = self.client.occupancy.seq if self.client.occupancy is not None else -1
+        seen_seq = planned_on.seq if planned_on is not None else -1
         if self.guard is not None:
-            occupancy = self.client.occupancy
-            self.guard.start(None if occupancy is None else occupancy.occupied_centers_m,
-                             0.0 if occupancy is None else occupancy.resolution_m)
+            self.guard.start(None if planned_on is None else planned_on.occupied_centers_m,
+                             0.0 if planned_on is None else planned_on.resolution_m)
 
         def finished() -> bool:
             s = self.client.status

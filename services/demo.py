@@ -69,7 +69,7 @@ def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, i
     started = time.monotonic()
     # A map that changes under the moving arm (noise, a newly seen surface) should cost a
     # replan, not the goal.
-    execution = client.execute(plan.path, joint_names=plan.joint_names, replan=True)
+    execution = client.execute(plan.path, joint_names=plan.joint_names, replan=True, occupancy_stamp=plan.occupancy_stamp)
     if isinstance(execution, ErrorReply):
         record.update(reached=False, error=f"execute: {execution.code}: {execution.message}")
         return record

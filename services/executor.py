@@ -12,6 +12,7 @@ path from the rest state to the same goal and continues under the same trajector
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import gc
 import logging
@@ -34,7 +35,7 @@ from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.trajectory.execution import PATH_BLOCKED, ExecutionStateMachine, Limits, WatchdogConfig
 from robonav.pipeline.trajectory.path_guard import PathGuard
 from robonav.pipeline.trajectory.timing import JointTrajectory, time_parameterize
-from robonav.pipeline.wire import ErrorCode, ProtocolError
+from robonav.pipeline.wire import ErrorCode, ProtocolError, unpack
 from robonav.services.client import QueryFailed, query_one
 from robonav.services.common import (Node, declare_latched_publisher, declare_latched_subscriber, guarded_queryable,
                                      guarded_subscriber, decode_request, reply_ok, run_service)
@@ -48,6 +49,10 @@ SWITCH_INTERVAL_S = 5e-4
 """Python's thread switch interval in the executor's process [s]."""
 SUPERVISE_PERIOD_S = 0.005
 """The service loop (watchdog, state changes, status) runs every this [s]; setpoints do not wait on it."""
+RECENT_MAPS = 64
+"""Occupancy messages kept to find the one a path was planned on (about 2 s at 30 maps/s)."""
+EVERY_VOXEL = b""
+"""A path's baseline when the map it was planned on is no longer held: no voxel is known to the plan."""
 
 
 @dataclass(frozen=True)
@@ -64,9 +69,10 @@ class _Execution:
     generation: int
     """Bumped by every accepted request and replan: the monitor takes a new baseline map."""
     baseline_map: bytes | None
-    """The newest occupancy message when the path was accepted (undecoded), or None: only voxels
-    new since count. Taken then, not when the monitor next runs, which may be after an
-    obstacle that appeared meanwhile is already in a newer map."""
+    """The occupancy message the path was planned on (undecoded), or None: only voxels new since
+    count. Found by the plan's map stamp (`_baseline_map`) when the path starts, not when the
+    monitor next runs, which may be after an obstacle that appeared meanwhile is already in a
+    newer map."""
 
 
 class ExecutorNode(Node):
@@ -112,8 +118,8 @@ class ExecutorNode(Node):
         self._map_lock = threading.Lock()
         self._map_wire: bytes | None = None
         """The newest occupancy message the monitor has not taken yet, undecoded: it decodes only what it uses."""
-        self._newest_map_wire: bytes | None = None
-        """The newest occupancy message (a new path's baseline)."""
+        self._recent_map_wires: collections.deque[bytes] = collections.deque(maxlen=RECENT_MAPS)
+        """The newest occupancy messages, oldest first: a new path's baseline is among them."""
         self._map_arrived = threading.Event()
         self._guard = PathGuard(self.robot, padding_m=cfg.robot.padding_m, inflation_m=cfg.perception.inflation_m,
                                 edge_resolution_rad=cfg.planner.edge_resolution_rad)
@@ -149,7 +155,8 @@ class ExecutorNode(Node):
 
     def on_occupancy(self, sample: zenoh.Sample) -> None:
         with self._map_lock:
-            self._map_wire = self._newest_map_wire = sample.payload.to_bytes()
+            self._map_wire = sample.payload.to_bytes()
+            self._recent_map_wires.append(self._map_wire)
         self._map_arrived.set()
 
     def handle_execute(self, query: zenoh.Query) -> None:
@@ -165,6 +172,7 @@ class ExecutorNode(Node):
         trajectory = self._time_parameterize(path, request.max_velocity_scaling_factor,
                                              request.max_acceleration_scaling_factor)
         trajectory_id = request.trajectory_id or uuid.uuid4().hex[:12]
+        baseline_map = self._baseline_map(request.occupancy_stamp)
         with self._lock:
             switch_s = self._switch_time()
             commanded = self.machine.commanded_state(switch_s)
@@ -183,7 +191,7 @@ class ExecutorNode(Node):
                 trajectory_id, path, request.replan,
                 request.replan_attempts or self.cfg.executor.replan_attempts,
                 request.max_velocity_scaling_factor, request.max_acceleration_scaling_factor, self._generation,
-                self._baseline_map())
+                baseline_map)
             self._blocked_after_frame_s = self._blocked_stamp = None
         log.info("executing %s: %d waypoints, %.2f s%s", trajectory_id, len(path), duration_s,
                  " (preempted the running trajectory)" if preempted else "")
@@ -229,10 +237,14 @@ class ExecutorNode(Node):
                     self._replan(execution)
                 elif state == "executing" and commanded is not None:
                     if baseline_generation != execution.generation:
-                        # The path was planned on (about) the newest map when it was accepted:
-                        # only voxels new since count. Without a map then, the first one is the baseline.
-                        baseline = self._decoded(execution.baseline_map) or occupancy
-                        if baseline is not None:
+                        # Only voxels new since the map the path was planned on count. Without
+                        # any map then, the first one is the baseline.
+                        if execution.baseline_map == EVERY_VOXEL:
+                            self._guard.start(None)
+                            baseline_generation = execution.generation
+                            if occupancy is not None:
+                                self._guard.update_map(occupancy.occupied_centers_m, occupancy.resolution_m)
+                        elif (baseline := self._decoded(execution.baseline_map) or occupancy) is not None:
                             self._guard.start(baseline.occupied_centers_m, baseline.resolution_m)
                             baseline_generation = execution.generation
                             if occupancy is not None and occupancy is not baseline:
@@ -249,9 +261,32 @@ class ExecutorNode(Node):
         except ValueError:
             return None  # already reported when it arrived
 
-    def _baseline_map(self) -> bytes | None:
+    def _baseline_map(self, planned_on_stamp: float | None) -> bytes | None:
+        """The held occupancy message a path was planned on: the newest one stamped no later than
+        `planned_on_stamp` (an older one only makes more voxels count as new).
+
+        A plan's map is often not the newest: maps keep arriving while the planner works, and a
+        box that came to rest meanwhile would be in the baseline, unwatched, though the plan never
+        saw it. None (the client gave no stamp) takes the newest map, as MoveIt's monitor would
+        take the current scene. When no held map is that old (the plan saw none, stamp 0, or it
+        is no longer held), EVERY_VOXEL: all voxels count.
+        """
         with self._map_lock:
-            return self._newest_map_wire
+            wires = list(self._recent_map_wires)
+        if planned_on_stamp is None:
+            return wires[-1] if wires else None
+        for wire in reversed(wires):
+            try:
+                fields = unpack(wire)
+            except ProtocolError:
+                continue  # already reported when it arrived
+            stamp = fields.get("stamp") if isinstance(fields, dict) else None
+            if isinstance(stamp, (int, float)) and stamp <= planned_on_stamp:
+                return wire
+        if wires and planned_on_stamp > 0:
+            log.warning("the map a path was planned on (stamp %.3f) is older than the %d held: every voxel counts",
+                        planned_on_stamp, len(wires))
+        return EVERY_VOXEL
 
     def _check_rest_of_path(self, execution: _Execution, q_commanded: np.ndarray, occupancy: Occupancy) -> None:
         blocked_at = self._guard.blocked_state(execution.path, q_commanded)
@@ -314,6 +349,7 @@ class ExecutorNode(Node):
     def _start_replanned(self, execution: _Execution, plan: PlanResponse, replans_left: int) -> None:
         path = reorder_to_robot(plan.path, plan.joint_names, self.robot.joint_names, "path")
         trajectory = self._time_parameterize(path, execution.velocity_scaling, execution.acceleration_scaling)
+        baseline_map = self._baseline_map(plan.occupancy_stamp)
         with self._lock:
             if self._execution is not execution or self.machine.state != "replanning":
                 return  # a new request or a stop came in while planning
@@ -321,7 +357,7 @@ class ExecutorNode(Node):
             self._stream_latest()
             self._generation += 1
             self._execution = dataclasses.replace(execution, path=path, replans_left=replans_left,
-                                                  generation=self._generation, baseline_map=self._baseline_map())
+                                                  generation=self._generation, baseline_map=baseline_map)
             duration_s = trajectory.duration_s
         log.info("%s: replanned (%d waypoints, %.2f s)", execution.trajectory_id, len(path), duration_s)
         self._path_pub.put(ExecutorPath(stamp=time.time(), trajectory_id=execution.trajectory_id,

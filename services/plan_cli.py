@@ -74,7 +74,8 @@ def plan_and_execute(client: RobonavClient, args: argparse.Namespace) -> tuple[i
                   goal_positions=np.round(plan.path[-1], 5).tolist())
     if not args.execute:
         return EXIT_OK, record
-    execution = client.execute(plan.path, joint_names=plan.joint_names, timeout_s=args.timeout, replan=args.replan)
+    execution = client.execute(plan.path, joint_names=plan.joint_names, timeout_s=args.timeout, replan=args.replan,
+                               occupancy_stamp=plan.occupancy_stamp)
     if isinstance(execution, ErrorReply):
         record.update(ok=False, stage="execute", code=execution.code, message=execution.message, details=execution.details)
         return EXIT_FAILED, record

@@ -10,12 +10,15 @@ from collections.abc import Iterator
 
 import msgpack
 import numpy as np
+import octomap
 import pytest
 import zenoh
 
-from robonav.pipeline.messages import ErrorReply, ExecuteRequest, ExecuteResponse, JointState, Setpoint, StopResponse
+from robonav.pipeline.messages import (ErrorReply, ExecuteRequest, ExecuteResponse, JointState, Occupancy, Setpoint,
+                                       StopResponse)
+from robonav.pipeline.robot import RobotModel
 from robonav.services.client import RobonavClient
-from robonav.services.common import open_session
+from robonav.services.common import declare_latched_publisher, open_session
 from robonav.services.config import ZenohConfig, load_config
 from robonav.services.executor import ExecutorNode
 
@@ -178,3 +181,38 @@ def test_bad_requests_get_structured_errors(executor: tuple[ExecutorNode, Robona
     assert not robot.setpoints  # nothing moved
     ok = client.execute(_path(HOME, [0.05] * 7))  # and the service still serves
     assert isinstance(ok, ExecuteResponse)
+
+
+def _map_with_cubes(centres_m: np.ndarray, stamp: float) -> bytes:
+    tree = octomap.OcTree(0.02)
+    for centre in centres_m:
+        tree.updateNode(np.asarray(centre, dtype=np.float64), True)
+    return Occupancy(stamp=stamp, resolution_m=0.02, octomap_binary=tree.writeBinary(),
+                     occupied_centers_m=np.asarray(centres_m, dtype=np.float32).reshape(-1, 3)).to_wire()
+
+
+@pytest.mark.parametrize("planned_on", ["older map", "newest map"])
+def test_a_voxel_that_arrived_while_the_plan_was_made_is_watched(
+        executor: tuple[ExecutorNode, RobonavClient, FakeRobot], planned_on: str) -> None:
+    """The plan was made on map 1; map 2, with a voxel on the path, came in before the execute.
+    Named by its stamp, map 1 is the baseline and the voxel stops the arm; had the executor
+    taken the newest map as the one planned on, the voxel would pass unwatched."""
+    node, client, _ = executor
+    path = _path(HOME, [0.8, 0, 0, 0, 0, 0, 0])
+    hand = RobotModel.from_config(CONFIG.robot).link_poses(HOME + np.array([0.6, 0, 0, 0, 0, 0, 0]))["panda_hand"][:3, 3]
+    far = np.array([[-0.8, -0.8, 0.1]])
+    publisher = declare_latched_publisher(client.session, client.keys.occupancy)
+    publisher.put(_map_with_cubes(far, stamp=100.0))
+    assert client.wait_for(lambda: len(node._recent_map_wires) == 1, 5.0)
+    publisher.put(_map_with_cubes(np.vstack([far, hand]), stamp=101.0))
+    assert client.wait_for(lambda: len(node._recent_map_wires) == 2, 5.0)
+    stamp = 100.0 if planned_on == "older map" else None
+    reply = client.execute(path, trajectory_id="in-flight", occupancy_stamp=stamp)
+    assert isinstance(reply, ExecuteResponse), reply
+    client.wait_for_trajectory("in-flight", reply.duration_s + 5.0)
+    status = client.status
+    assert status is not None and status.trajectory_id == "in-flight"
+    if planned_on == "older map":
+        assert (status.state, status.error_code) == ("error", "PATH_BLOCKED"), status
+    else:
+        assert (status.state, status.last_result) == ("idle", "succeeded"), status
