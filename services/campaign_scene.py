@@ -248,6 +248,7 @@ class SceneRunner:
                 names = {o.name for o in self._objects(SimObjectsRequest(operation="list")).objects}
                 if "intruder" in names:
                     self._objects(SimObjectsRequest(operation="remove", names=("intruder",)))
+                self._intruder_at_rest = None  # gone: the way home is not checked against it
         # Reset here, not at the swap: contacts while going home count for the scene that follows.
         contacts = self.client.contacts(reset=True)
         if isinstance(contacts, ErrorReply):
