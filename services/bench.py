@@ -43,8 +43,11 @@ from robonav.pipeline.scene import SceneObject
 
 BENCH_RANGE_RAD = 1.0
 """RRTConnect range for the benchmark: MPLib's MBM figures solve 99.4 % with it, 82.7 % with OMPL's default."""
-BENCH_EDGE_RESOLUTION_RAD = 0.01
-"""Planner edge checks as fine as the re-check, so a good planner loses no paths to it."""
+BENCH_EDGE_RESOLUTION_RAD = 0.02
+"""Joint step of the planner's edge checks while it searches and shortcuts [rad]."""
+BENCH_PATH_CHECK_RESOLUTION_RAD = FINE_STEP_RAD
+"""The planner re-checks the path it returns as finely as the benchmark's re-check, so a good
+planner loses no paths to it."""
 CLOUD_SPACING_M = 0.005
 """Spacing of the synthetic surface cloud for `--scene cloud` [m]."""
 CLOUD_ORIGIN_HEIGHT_M = 0.3
@@ -158,6 +161,7 @@ def plan_main(args: argparse.Namespace) -> int:
         "problems_path": str(args.problems), "families": [s.family for s in sets], "limit": args.limit,
         "planner": args.planner, "time_limit_s": args.time_limit, "seed": args.seed, "padding_m": args.padding,
         "scene": args.scene, "range_rad": BENCH_RANGE_RAD, "edge_resolution_rad": BENCH_EDGE_RESOLUTION_RAD,
+        "path_check_resolution_rad": BENCH_PATH_CHECK_RESOLUTION_RAD,
         "fine_check_step_rad": FINE_STEP_RAD, "fine_check_model": "link collision meshes (FCL BVH), unpadded",
         **({"cloud_spacing_m": CLOUD_SPACING_M, "occupancy_resolution_m": PerceptionConfig().resolution_m,
             "occupancy_inflation_m": args.cloud_inflation} if args.scene == "cloud" else {}),
@@ -245,7 +249,8 @@ def run_plan_benchmark(
     """
     total = sum(len(s.problems) for s in sets)
     planner_config = PlannerConfig(allowed_planning_time_s=time_limit_s, range_rad=BENCH_RANGE_RAD,
-                                   edge_resolution_rad=BENCH_EDGE_RESOLUTION_RAD, seed=seed)
+                                   edge_resolution_rad=BENCH_EDGE_RESOLUTION_RAD,
+                                   path_check_resolution_rad=BENCH_PATH_CHECK_RESOLUTION_RAD, seed=seed)
     robots: dict[tuple[Any, ...], RobotModel] = {}
     records: list[ProblemRecord] = []
     for problem_set in sets:

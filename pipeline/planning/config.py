@@ -19,6 +19,10 @@ class PlannerConfig:
     """RRTConnect extension length in joint space [rad]; 0 lets OMPL choose."""
     edge_resolution_rad: float = 0.02
     """Largest joint-space step between collision checks along an edge [rad]."""
+    path_check_resolution_rad: float = 0.0
+    """Largest joint-space step of the exact re-check of the returned path [rad]; 0: the edge
+    resolution. Finer than the edges, the search checks fewer states and the one path it returns
+    is still held to the finer step (a path that fails it is not returned)."""
     simplify: bool = True
     """Shortcut the raw path (every result is re-validated)."""
     shortcut_iterations: int = 40
@@ -56,6 +60,8 @@ class PlannerConfig:
         require(self.allowed_planning_time_s > 0, f"planner.allowed_planning_time_s must be > 0, got {self.allowed_planning_time_s}")
         require(self.range_rad >= 0, f"planner.range_rad must be >= 0, got {self.range_rad}")
         require(self.edge_resolution_rad > 0, f"planner.edge_resolution_rad must be > 0, got {self.edge_resolution_rad}")
+        require(0 <= self.path_check_resolution_rad <= self.edge_resolution_rad,
+                f"planner.path_check_resolution_rad must be in [0, edge_resolution_rad], got {self.path_check_resolution_rad}")
         require(self.shortcut_iterations >= 0, f"planner.shortcut_iterations must be >= 0, got {self.shortcut_iterations}")
         require(self.shortcut_patience >= 0, f"planner.shortcut_patience must be >= 0, got {self.shortcut_patience}")
         require(0 <= self.sphere_first_share <= 1,

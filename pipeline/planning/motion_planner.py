@@ -2,7 +2,8 @@
 
 This is the planner service's core, free of Zenoh: a joint-space problem (joint goals, a goal
 set or a Cartesian pose goal) in, a path with its metrics or a status that says why not out.
-Every returned path is re-validated against the collision world at the edge resolution.
+Every returned path is re-validated exactly against the collision world, at the path check
+resolution (the edge resolution unless set finer).
 """
 
 from __future__ import annotations
@@ -427,8 +428,10 @@ class MotionPlanner:
         simplification_time_s = time.perf_counter() - simplify_start
         # Re-validate what we return, exactly: a path is only as good as its last check.
         sphere_first, self._sphere_first = self._sphere_first, False
+        fine_rad = self.config.path_check_resolution_rad
         try:
-            valid = all(motion_valid(a, b) for a, b in zip(path[:-1], path[1:]))
+            valid = all(motion_valid(a, b) and (fine_rad <= 0 or self.world.motion_valid(a, b, fine_rad))
+                        for a, b in zip(path[:-1], path[1:]))
         finally:
             self._sphere_first = sphere_first
         if not valid:

@@ -199,3 +199,21 @@ def test_bad_requests_raise(setup) -> None:
         planner.plan(PlanProblem(start, goal, workspace_min_m=np.ones(3), workspace_max_m=np.zeros(3)))
     with pytest.raises(ValueError, match="goal_tolerance_rad"):
         planner.plan(PlanProblem(start, goal, goal_tolerance_rad=float("nan")))
+
+
+@pytest.mark.parametrize("path_check_rad, returned", [(0.0, True), (0.01, False)])
+def test_the_returned_path_is_rechecked_at_the_path_check_resolution(panda: RobotModel, path_check_rad: float,
+                                                                     returned: bool) -> None:
+    """Edges checked 2 rad apart step over a 2 mm plate in the hand's way; the re-check at
+    0.01 rad does not, and a path through the plate is never returned."""
+    start, goal = panda.home_position_rad.copy(), panda.home_position_rad.copy()
+    start[0], goal[0] = -0.8, 0.8
+    hand = panda.link_poses(panda.home_position_rad)["panda_hand"][:3, 3]
+    world = CollisionWorld(panda, padding_m=0.0)
+    world.set_objects([SceneObject("plate", "box", tuple(hand), size_m=(0.1, 0.002, 0.1))])
+    planner = MotionPlanner(panda, world, PlannerConfig(edge_resolution_rad=2.0, path_check_resolution_rad=path_check_rad))
+    assert world.motion_valid(start, goal, 2.0) and not world.motion_valid(start, goal, 0.01)
+    outcome = planner.plan(PlanProblem(start, goal, allowed_planning_time_s=0.2, seed=0))
+    assert (outcome.status is PlanStatus.SUCCESS) is returned, outcome.detail
+    if not returned:
+        assert "re-validation" in outcome.detail
