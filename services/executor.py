@@ -275,6 +275,8 @@ class ExecutorNode(Node):
             wires = list(self._recent_map_wires)
         if planned_on_stamp is None:
             return wires[-1] if wires else None
+        if planned_on_stamp <= 0:
+            return EVERY_VOXEL
         for wire in reversed(wires):
             try:
                 fields = unpack(wire)
@@ -283,7 +285,7 @@ class ExecutorNode(Node):
             stamp = fields.get("stamp") if isinstance(fields, dict) else None
             if isinstance(stamp, (int, float)) and stamp <= planned_on_stamp:
                 return wire
-        if wires and planned_on_stamp > 0:
+        if wires:
             log.warning("the map a path was planned on (stamp %.3f) is older than the %d held: every voxel counts",
                         planned_on_stamp, len(wires))
         return EVERY_VOXEL
