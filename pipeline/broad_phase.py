@@ -400,16 +400,13 @@ def _touches_voxels(x: float, y: float, z: float, radius: float, occupied, origi
 
 
 @nb.njit(cache=True, inline="always")
-def _place_spheres(li, placed, link_start, link_rotation, link_translation, centers_link, sphere_world) -> None:
-    """World centres of link `li`'s spheres, once per state."""
-    if placed[li]:
-        return
-    placed[li] = True
-    for s in range(link_start[li], link_start[li + 1]):
-        for r in range(3):
-            sphere_world[s, r] = (link_translation[li, r] + link_rotation[li, r, 0] * centers_link[s, 0]
-                                  + link_rotation[li, r, 1] * centers_link[s, 1]
-                                  + link_rotation[li, r, 2] * centers_link[s, 2])
+def _rows_within(points_a, i: int, points_b, j: int, reach: float) -> bool:
+    """Whether points_a[i] and points_b[j] are within `reach` (+ the contact epsilon) [m]."""
+    dx = points_a[i, 0] - points_b[j, 0]
+    dy = points_a[i, 1] - points_b[j, 1]
+    dz = points_a[i, 2] - points_b[j, 2]
+    r = reach + _CONTACT_EPS_M
+    return dx * dx + dy * dy + dz * dz <= r * r
 
 
 @nb.njit(cache=True)
@@ -426,9 +423,11 @@ def _state_suspect(q, kin, rot_scratch, trans_scratch, link_rotation, link_trans
             bound_world_center[li, r] = (link_translation[li, r] + link_rotation[li, r, 0] * bound_center_link[li, 0]
                                          + link_rotation[li, r, 1] * bound_center_link[li, 1]
                                          + link_rotation[li, r, 2] * bound_center_link[li, 2])
-    # A link's spheres are placed only once its bounding sphere is near something: most links
-    # of most states are near nothing.
-    placed = np.zeros(n_links, dtype=np.bool_)
+        for s in range(link_start[li], link_start[li + 1]):
+            for r in range(3):
+                sphere_world[s, r] = (link_translation[li, r] + link_rotation[li, r, 0] * centers_link[s, 0]
+                                      + link_rotation[li, r, 1] * centers_link[s, 1]
+                                      + link_rotation[li, r, 2] * centers_link[s, 2])
     n_objects = obj_kind.shape[0]
     # Robot vs primitives: link bounding sphere first, then the link's spheres.
     for li in range(n_links):
@@ -440,7 +439,6 @@ def _state_suspect(q, kin, rot_scratch, trans_scratch, link_rotation, link_trans
                 continue
             if _object_distance(bx, by, bz, k, obj_kind, obj_rotation, obj_translation, obj_param) > bound_world[li]:
                 continue
-            _place_spheres(li, placed, link_start, link_rotation, link_translation, centers_link, sphere_world)
             for s in range(link_start[li], link_start[li + 1]):
                 d = _object_distance(sphere_world[s, 0], sphere_world[s, 1], sphere_world[s, 2], k, obj_kind,
                                      obj_rotation, obj_translation, obj_param)
@@ -448,7 +446,6 @@ def _state_suspect(q, kin, rot_scratch, trans_scratch, link_rotation, link_trans
                     return True
         if has_grid:
             if _voxel_distance(bx, by, bz, grid, grid_origin, grid_voxel, grid_box) <= bound_world[li]:
-                _place_spheres(li, placed, link_start, link_rotation, link_translation, centers_link, sphere_world)
                 for s in range(link_start[li], link_start[li + 1]):
                     d = _voxel_distance(sphere_world[s, 0], sphere_world[s, 1], sphere_world[s, 2], grid, grid_origin,
                                         grid_voxel, grid_box)
@@ -459,29 +456,15 @@ def _state_suspect(q, kin, rot_scratch, trans_scratch, link_rotation, link_trans
     # Self-collision, unpadded.
     for p in range(self_pairs.shape[0]):
         la, lb = self_pairs[p, 0], self_pairs[p, 1]
-        dx = bound_world_center[la, 0] - bound_world_center[lb, 0]
-        dy = bound_world_center[la, 1] - bound_world_center[lb, 1]
-        dz = bound_world_center[la, 2] - bound_world_center[lb, 2]
-        reach = bound_self[la] + bound_self[lb] + _CONTACT_EPS_M
-        if dx * dx + dy * dy + dz * dz > reach * reach:
+        if not _rows_within(bound_world_center, la, bound_world_center, lb, bound_self[la] + bound_self[lb]):
             continue
-        _place_spheres(la, placed, link_start, link_rotation, link_translation, centers_link, sphere_world)
-        _place_spheres(lb, placed, link_start, link_rotation, link_translation, centers_link, sphere_world)
         for sa in range(link_start[la], link_start[la + 1]):
             # Against the other link's bounding sphere first: most spheres of a pair whose
             # bounds overlap are far from the other link.
-            dx = sphere_world[sa, 0] - bound_world_center[lb, 0]
-            dy = sphere_world[sa, 1] - bound_world_center[lb, 1]
-            dz = sphere_world[sa, 2] - bound_world_center[lb, 2]
-            reach = radii_self[sa] + bound_self[lb] + _CONTACT_EPS_M
-            if dx * dx + dy * dy + dz * dz > reach * reach:
+            if not _rows_within(sphere_world, sa, bound_world_center, lb, radii_self[sa] + bound_self[lb]):
                 continue
             for sb in range(link_start[lb], link_start[lb + 1]):
-                dx = sphere_world[sa, 0] - sphere_world[sb, 0]
-                dy = sphere_world[sa, 1] - sphere_world[sb, 1]
-                dz = sphere_world[sa, 2] - sphere_world[sb, 2]
-                reach = radii_self[sa] + radii_self[sb] + _CONTACT_EPS_M
-                if dx * dx + dy * dy + dz * dz <= reach * reach:
+                if _rows_within(sphere_world, sa, sphere_world, sb, radii_self[sa] + radii_self[sb]):
                     return True
     # Attached spheres: against the world (padded) and the robot links they may not touch.
     for a in range(att_radius.shape[0]):
@@ -506,7 +489,6 @@ def _state_suspect(q, kin, rot_scratch, trans_scratch, link_rotation, link_trans
             reach = att_radius[a] + bound_self[lo] + _CONTACT_EPS_M
             if dx * dx + dy * dy + dz * dz > reach * reach:
                 continue
-            _place_spheres(lo, placed, link_start, link_rotation, link_translation, centers_link, sphere_world)
             for s in range(link_start[lo], link_start[lo + 1]):
                 dx, dy, dz = x - sphere_world[s, 0], y - sphere_world[s, 1], z - sphere_world[s, 2]
                 reach = att_radius[a] + radii_self[s] + _CONTACT_EPS_M
