@@ -239,13 +239,11 @@ class ExecutorNode(Node):
                     if baseline_generation != execution.generation:
                         # Only voxels new since the map the path was planned on count. Without
                         # any map then, the first one is the baseline.
-                        if execution.baseline_map == EVERY_VOXEL:
-                            self._guard.start(None)
-                            baseline_generation = execution.generation
-                            if occupancy is not None:
-                                self._guard.update_map(occupancy.occupied_centers_m, occupancy.resolution_m)
-                        elif (baseline := self._decoded(execution.baseline_map) or occupancy) is not None:
-                            self._guard.start(baseline.occupied_centers_m, baseline.resolution_m)
+                        every_voxel = execution.baseline_map == EVERY_VOXEL
+                        baseline = None if every_voxel else self._decoded(execution.baseline_map) or occupancy
+                        if every_voxel or baseline is not None:
+                            self._guard.start(None if baseline is None else baseline.occupied_centers_m,
+                                              0.0 if baseline is None else baseline.resolution_m)
                             baseline_generation = execution.generation
                             if occupancy is not None and occupancy is not baseline:
                                 self._guard.update_map(occupancy.occupied_centers_m, occupancy.resolution_m)
