@@ -90,6 +90,10 @@ class ExecutorConfig:
     """Wait for a planner's reply to a replan at most this long [s]."""
     replan_delay_s: float = 0.5
     """Pause after a failed replan before the next, so the map can change (MoveIt's replan_delay) [s]."""
+    replan_settle_s: float = 1.0
+    """Before a replan, wait up to this long for two maps taken after the stop, the second adding
+    (almost) no voxel to the first: the obstacle that stopped the arm may still be moving, and a
+    path around where it was runs into where it stops [s]; 0: plan at once."""
 
     def __post_init__(self) -> None:
         require(0 < self.rate_hz <= 2000, f"executor.rate_hz must be in (0, 2000], got {self.rate_hz}")
@@ -114,6 +118,7 @@ class ExecutorConfig:
         require(self.replan_attempts >= 1, f"executor.replan_attempts must be >= 1, got {self.replan_attempts}")
         require(self.replan_timeout_s > 0, f"executor.replan_timeout_s must be > 0, got {self.replan_timeout_s}")
         require(self.replan_delay_s >= 0, f"executor.replan_delay_s must be >= 0, got {self.replan_delay_s}")
+        require(self.replan_settle_s >= 0, f"executor.replan_settle_s must be >= 0, got {self.replan_settle_s}")
 
 
 @dataclass(frozen=True)

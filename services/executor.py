@@ -33,7 +33,7 @@ from robonav.pipeline.messages import (ErrorReply, ExecuteRequest, ExecuteRespon
                                        StopResponse)
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.trajectory.execution import PATH_BLOCKED, ExecutionStateMachine, Limits, WatchdogConfig
-from robonav.pipeline.trajectory.path_guard import PathGuard
+from robonav.pipeline.trajectory.path_guard import SETTLED_MAX_NEW_VOXELS, PathGuard, new_voxel_count
 from robonav.pipeline.trajectory.timing import JointTrajectory, time_parameterize
 from robonav.pipeline.wire import ErrorCode, ProtocolError, unpack
 from robonav.services.client import QueryFailed, query_one
@@ -316,6 +316,7 @@ class ExecutorNode(Node):
             last = self.machine.last_setpoint
         if last is None:
             return
+        self._wait_settled_map(time.time())
         errors: list[str] = []
         left = execution.replans_left
         while left > 0:
@@ -345,6 +346,27 @@ class ExecutorNode(Node):
                 self.machine.fault(time.monotonic(), PATH_BLOCKED,
                                    f"a new obstacle blocks '{execution.trajectory_id}' and replanning failed: "
                                    + "; ".join(errors[-3:]))
+
+    def _wait_settled_map(self, rested_at: float) -> None:
+        """Hold the replan until two held maps stamped after `rested_at` agree (the second adds
+        at most `SETTLED_MAX_NEW_VOXELS`), or `executor.replan_settle_s` passes."""
+        deadline = time.monotonic() + self.cfg.executor.replan_settle_s
+        decoded: dict[bytes, Occupancy | None] = {}
+        while time.monotonic() < deadline:
+            with self._map_lock:
+                wires = list(self._recent_map_wires)[-2:]
+            for wire in wires:
+                if wire not in decoded:
+                    decoded[wire] = self._decoded(wire)
+            maps = [decoded[wire] for wire in wires]
+            if len(maps) == 2 and all(m is not None and m.stamp > rested_at for m in maps):
+                before, now = maps
+                assert before is not None and now is not None
+                if new_voxel_count(before.occupied_centers_m, now.occupied_centers_m,
+                                   now.resolution_m) <= SETTLED_MAX_NEW_VOXELS:
+                    return
+            if self._monitor_stop.wait(0.02):
+                return
 
     def _start_replanned(self, execution: _Execution, plan: PlanResponse, replans_left: int) -> None:
         path = reorder_to_robot(plan.path, plan.joint_names, self.robot.joint_names, "path")

@@ -139,3 +139,18 @@ def _voxel_keys(centres_m: FloatArray, voxel_m: float) -> npt.NDArray[np.int64]:
     """One int64 per voxel (21 bits per axis: +-10 km at 1 cm)."""
     ijk = np.floor(centres_m / voxel_m).astype(np.int64) + (1 << 20)
     return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+SETTLED_MAX_NEW_VOXELS = 2
+"""A map adding at most this many voxels to the one before shows a scene at rest: depth noise
+adds 0-2 per frame with the arm still; an object still moving adds its leading faces."""
+
+
+def new_voxel_count(previous_centres_m: npt.ArrayLike, centres_m: npt.ArrayLike, voxel_m: float) -> int:
+    """How many voxels of `centres_m` (N, 3) are not in `previous_centres_m` (M, 3), both maps
+    of `voxel_m` voxels: 0 (up to sensor noise) when nothing moved in between."""
+    if voxel_m <= 0:
+        raise ValueError(f"voxel_m must be > 0, got {voxel_m}")
+    before = _voxel_keys(np.asarray(previous_centres_m, dtype=np.float64).reshape(-1, 3), voxel_m)
+    now = _voxel_keys(np.asarray(centres_m, dtype=np.float64).reshape(-1, 3), voxel_m)
+    return int(np.count_nonzero(~np.isin(now, before)))

@@ -216,3 +216,24 @@ def test_a_voxel_that_arrived_while_the_plan_was_made_is_watched(
         assert (status.state, status.error_code) == ("error", "PATH_BLOCKED"), status
     else:
         assert (status.state, status.last_result) == ("idle", "succeeded"), status
+
+
+def test_a_replan_waits_for_maps_that_stopped_changing(executor: tuple[ExecutorNode, RobonavClient, FakeRobot]) -> None:
+    """A box still sliding after the stop adds voxels map after map: the replan waits until two
+    maps taken after the stop agree, not for a map older than the stop."""
+    node, client, _ = executor
+    node.cfg = dataclasses.replace(node.cfg, executor=dataclasses.replace(node.cfg.executor, replan_settle_s=30.0))
+    publisher = declare_latched_publisher(client.session, client.keys.occupancy)
+    rested_at = time.time()
+    box = np.array([[0.5, y, 0.3] for y in np.arange(0.0, 0.2, 0.02)])
+    waiter = threading.Thread(target=node._wait_settled_map, args=(rested_at,), daemon=True)
+    publisher.put(_map_with_cubes(box, stamp=rested_at - 1.0))  # taken before the stop
+    waiter.start()
+    for count, stamp in ((3, 1.0), (6, 2.0), (6, 3.0)):  # sliding in, then at rest
+        publisher.put(_map_with_cubes(box[:count], stamp=rested_at + stamp))
+        if stamp == 3.0:
+            break
+        time.sleep(0.3)
+        assert waiter.is_alive(), f"stopped waiting on the map stamped {stamp} s after the stop"
+    waiter.join(timeout=5.0)
+    assert not waiter.is_alive()

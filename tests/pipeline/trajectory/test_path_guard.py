@@ -8,7 +8,7 @@ import pytest
 from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.trajectory.path_guard import PathGuard
+from robonav.pipeline.trajectory.path_guard import PathGuard, new_voxel_count
 from robonav.services.config import load_config
 
 CFG = load_config()
@@ -101,3 +101,15 @@ def test_only_voxels_new_since_the_plan_count(guard: PathGuard) -> None:
     arrived = ROBOT.frame_pose(PATH[1], "panda_hand")[:3, 3]
     both = np.vstack([cube_of_voxels(on_path), cube_of_voxels(arrived)])
     assert blocked(guard, both, PATH, HOME)
+
+
+def test_new_voxel_count_counts_only_voxels_the_previous_map_lacks() -> None:
+    voxel_m = 0.02
+    before = np.array([[0.01, 0.01, 0.01], [0.03, 0.01, 0.01], [0.51, 0.21, 0.31]])
+    # The same voxels (centres off by less than a voxel), one gone and two new.
+    now = np.array([[0.015, 0.005, 0.01], [0.51, 0.21, 0.31], [0.07, 0.01, 0.01], [-0.01, 0.01, 0.01]])
+    assert new_voxel_count(before, now, voxel_m) == 2
+    assert new_voxel_count(now, now, voxel_m) == 0
+    assert new_voxel_count(np.zeros((0, 3)), now, voxel_m) == 4
+    with pytest.raises(ValueError, match="voxel_m"):
+        new_voxel_count(before, now, 0.0)
