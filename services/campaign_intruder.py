@@ -59,12 +59,12 @@ class IntruderPlacer:
             # The box blocks the way, not the goal: resting on or beside the goal, it would make
             # the goal unreachable rather than test a stop and a detour.
             self._goal_check.set_objects([box])
-            return self._goal_check.in_collision(path[-1]) or self._pixels_seen(box, at_rest) < INTRUDER_MIN_PIXELS
+            return self._goal_check.in_collision(path[-1]) or self.pixels_seen(box, at_rest) < INTRUDER_MIN_PIXELS
 
         return intruder_for_trajectory(self.robot, times, q, link=self.link, slide_s=INTRUDER_SLIDE_S,
                                        min_lead_s=INTRUDER_LEAD_S, reject=unfit)
 
-    def _pixels_seen(self, box: SceneObject, q: np.ndarray) -> int:
+    def pixels_seen(self, box: SceneObject, q: np.ndarray) -> int:
         """The most pixels of `box` any camera shows, the arm at `q` and the scene in front of it."""
         self._eyes.set_joint_positions(q)
         self._eyes.add_object(box)

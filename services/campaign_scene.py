@@ -25,7 +25,7 @@ from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import Intruder, perceivable_objects, sample_goal
 from robonav.pipeline.trajectory.execution import PATH_BLOCKED
-from robonav.pipeline.trajectory.path_guard import PathGuard
+from robonav.pipeline.trajectory.path_guard import SETTLED_MAX_NEW_VOXELS, PathGuard, new_voxel_count
 from robonav.pipeline.sim.scenes import Scene
 from robonav.services.campaign_intruder import INTRUDER_SLIDE_S, IntruderPlacer
 from robonav.services.client import QueryFailed, RobonavClient
@@ -155,6 +155,26 @@ class SceneRunner:
         threshold = after + (frames - 1) * self.frame_period_s
         return self.client.wait_for(lambda: self.client.occupancy is not None and self.client.occupancy.stamp > threshold,
                                     10.0 + frames * self.frame_period_s)
+
+    def _wait_settled_map(self, after: float) -> None:
+        """A map of frames newer than `after`, then newer maps until one adds (almost) nothing to
+        the one before, as the executor does before its own replans (`executor.replan_settle_s`)."""
+        if not self._wait_fresh_map(after):
+            return
+        previous = self.client.occupancy
+        assert previous is not None
+        deadline = time.monotonic() + self.cfg.executor.replan_settle_s
+        while time.monotonic() < deadline:
+            seq = previous.seq
+            if not self.client.wait_for(lambda: self.client.occupancy is not None and self.client.occupancy.seq != seq,
+                                        max(0.0, deadline - time.monotonic())):
+                return
+            current = self.client.occupancy
+            assert current is not None
+            if new_voxel_count(previous.occupied_centers_m, current.occupied_centers_m,
+                               current.resolution_m) <= SETTLED_MAX_NEW_VOXELS:
+                return
+            previous = current
 
     def _q(self) -> np.ndarray:
         assert self.client.joint_state is not None
@@ -311,7 +331,7 @@ class SceneRunner:
         for attempt in range(MAX_ATTEMPTS):
             if attempt > 0:
                 record.replans += 1
-                self._wait_fresh_map(time.time())
+                self._wait_settled_map(time.time())
             self.plan_seq += 1
             # The guard's baseline: the planner plans on this map or a newer one, and a voxel it
             # never saw must not hide in a baseline taken after the plan came back.
@@ -376,9 +396,15 @@ class SceneRunner:
             inside = np.all(np.abs(occupancy.occupied_centers_m - np.asarray(box.position_m)) <= half, axis=1)
             voxels = int(np.count_nonzero(inside))
         start_clearance_m = self._box_truth.clearance_m(path[0])
-        record.plans_through_box.append({"start_clearance_m": round(float(start_clearance_m), 4),
-                                         "box_voxels_in_map": voxels,
-                                         "since_rest_s": round(time.time() - self._intruder_rest_at, 3)})
+        # Why the map lacked it: still sliding, hidden from the cameras, or not yet in a frame.
+        true_box = [o for o in self._objects(SimObjectsRequest(operation="list")).objects if o.name == box.name]
+        from_rest_m = float(np.linalg.norm(np.subtract(true_box[0].position_m, box.position_m))) if true_box else None
+        record.plans_through_box.append({
+            "start_clearance_m": round(float(start_clearance_m), 4), "box_voxels_in_map": voxels,
+            "since_rest_s": round(time.time() - self._intruder_rest_at, 3),
+            "map_frame_after_rest_s": None if occupancy is None else round(occupancy.stamp - self._intruder_rest_at, 3),
+            "box_from_rest_m": None if from_rest_m is None else round(from_rest_m, 4),
+            "box_pixels_seen_from_start": self._placer.pixels_seen(box, path[0])})
         log.warning("scene %d: a plan passes through the resting box (start %.3f m from it, %d map voxels inside it)",
                     record.scene, start_clearance_m, voxels)
 
