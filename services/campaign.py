@@ -2,6 +2,7 @@
 
     robonav campaign --scenes N --seed S [--json FILE] [--goals-per-scene G] [--moving M]
                      [--source clutter|mbm|yaml] [--scene-dir DIR] [--no-noise] [--config FILE]
+                     [--extra-cameras FILE|none]
 
 One stack runs the whole campaign; scenes are swapped in at run time (`sim/objects set`,
 `perception/clear`). Each scene gets goals drawn so that a camera-built map can allow them
@@ -50,6 +51,7 @@ from robonav.services.up import Stack
 log = logging.getLogger("robonav.campaign")
 
 SERVICE_START_TIMEOUT_S = 90.0
+EXTRA_CAMERAS_NAME = "campaign_cameras.yaml"
 MAX_FAILED_SCENES_IN_A_ROW = 3
 
 
@@ -69,6 +71,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="procedural clutter (sim.clutter), MotionBenchMaker files or YAML scene files")
     parser.add_argument("--scene-dir", help="directory of mbm-primitives/1 JSON or YAML scene files")
     parser.add_argument("--no-noise", action="store_true", help="cameras without the noise model")
+    parser.add_argument("--extra-cameras", default=str(default_config_path().with_name(EXTRA_CAMERAS_NAME)),
+                        help="YAML file whose `cameras` list is added to the config's (default: the packaged "
+                             f"{EXTRA_CAMERAS_NAME}, a second camera behind the robot); 'none' adds none")
     parser.add_argument("--no-guard", action="store_true",
                         help="do not stop and replan when a new map blocks the rest of the path")
     parser.add_argument("--velocity-scaling", type=float, help="scaling of velocity and acceleration limits")
@@ -86,11 +91,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-def campaign_config(source: Path, directory: Path, *, noise: bool, seed: int) -> Path:
+def campaign_config(source: Path, directory: Path, *, noise: bool, seed: int, extra_cameras: Path | None = None) -> Path:
     """The config for the campaign's stack: noise switched, no obstacles or scripts at start,
-    depth images when perception integrates them (no cloud to build and re-project)."""
+    the cameras of `extra_cameras` added, depth images when perception integrates them (no
+    cloud to build and re-project)."""
     data = yaml.safe_load(source.read_text(encoding="utf-8")) or {}
     base = load_config(source)
+    if extra_cameras is not None:
+        extra = yaml.safe_load(extra_cameras.read_text(encoding="utf-8")) or {}
+        if not isinstance(extra, dict) or set(extra) != {"cameras"} or not isinstance(extra["cameras"], list):
+            raise ConfigError(str(extra_cameras), "<root>", "expected one key, `cameras`, holding a list")
+        data["cameras"] = [*data.get("cameras", []), *extra["cameras"]]
     sim = data.setdefault("sim", {})
     sim["objects"] = []
     sim["motions"] = []
@@ -315,7 +326,8 @@ def main(argv: list[str] | None = None) -> int:
     source = Path(args.config) if args.config else default_config_path()
     with tempfile.TemporaryDirectory(prefix="robonav-campaign-") as tmp:
         try:
-            config_path = campaign_config(source, Path(tmp), noise=not args.no_noise, seed=args.seed)
+            extra = None if args.extra_cameras == "none" else Path(args.extra_cameras)
+            config_path = campaign_config(source, Path(tmp), noise=not args.no_noise, seed=args.seed, extra_cameras=extra)
             cfg = load_config(config_path)
             scenes = load_scenes(args, cfg)
         except (ConfigError, OSError, ValueError, yaml.YAMLError) as exc:

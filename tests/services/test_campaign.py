@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 from robonav.services.campaign import campaign_config, load_scenes, moving_scene_indices, parse_args, summarize, table
+from robonav.pipeline.config import ConfigError
 from robonav.services.config import load_config
 
 from .conftest import free_port, write_config
@@ -35,6 +36,17 @@ def test_campaign_config_turns_noise_on_and_empties_the_world(tmp_path: Path) ->
     assert cfg.sim.noise.enabled and cfg.sim.noise.seed == 3 and cfg.planner.seed == 3
     assert cfg.sim.objects == () and cfg.sim.motions == ()
     assert all(c.output == "depth" for c in cfg.cameras)  # perception integrates depth images directly
+    assert [c.camera_id for c in cfg.cameras] == ["cam0"]
+
+
+def test_the_packaged_extra_camera_joins_the_configs_own(tmp_path: Path) -> None:
+    extra = Path(parse_args(["--scenes", "1"]).extra_cameras)
+    cfg = load_config(campaign_config(write_config(tmp_path, "base.yaml"), tmp_path, noise=True, seed=3, extra_cameras=extra))
+    assert [c.camera_id for c in cfg.cameras] == ["cam0", "cam1"] and all(c.output == "depth" for c in cfg.cameras)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("cameras: {camera_id: cam2}\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="cameras"):
+        campaign_config(write_config(tmp_path, "base.yaml"), tmp_path, noise=True, seed=3, extra_cameras=bad)
 
 
 def test_the_summary_counts_feasible_goals_contacts_and_clearance() -> None:
@@ -82,6 +94,7 @@ def campaign_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, dict, s
     out = directory / "campaign.json"
     run = subprocess.run([sys.executable, "-m", "robonav.services.cli", "campaign", "--scenes", "10", "--seed", "4",
                           "--goals-per-scene", "1", "--moving", "1", "--velocity-scaling", "1.0", "--config", str(path),
+                          "--extra-cameras", "none",
                           "--json", str(out)], capture_output=True, text=True, timeout=600)
     assert out.exists(), run.stderr[-3000:]
     return run.returncode, json.loads(out.read_text(encoding="utf-8")), run.stdout + run.stderr
