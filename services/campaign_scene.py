@@ -92,8 +92,10 @@ class GoalRecord:
     final_error_rad: float | None = None
     plans_through_box: list[dict[str, float]] = field(default_factory=list)
     """Plans made after the intruder was sent whose path meets the TRUE box at rest: for each, the
-    start's distance from it [m], how many voxels of the newest map lie inside it, and the time
-    since it came to rest [s] (negative: still sliding when planned)."""
+    start's distance from it [m], how many voxels of the newest map lie inside it, the time
+    since it came to rest [s] (negative: still sliding when planned), the newest frame of that
+    map against the rest time [s], the true box's distance from its rest pose [m] and the
+    pixels of the resting box a camera shows with the arm at the path's start."""
 
 
 class SceneRunner:
