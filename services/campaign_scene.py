@@ -25,7 +25,7 @@ from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import Intruder, perceivable_objects, sample_goal
 from robonav.pipeline.trajectory.execution import PATH_BLOCKED
-from robonav.pipeline.trajectory.path_guard import SETTLED_MAX_NEW_VOXELS, PathGuard, new_voxel_count
+from robonav.pipeline.trajectory.path_guard import PathGuard, map_settled
 from robonav.pipeline.sim.scenes import Scene
 from robonav.services.campaign_intruder import INTRUDER_SLIDE_S, IntruderPlacer
 from robonav.services.client import QueryFailed, RobonavClient
@@ -173,8 +173,7 @@ class SceneRunner:
                 return
             current = self.client.occupancy
             assert current is not None
-            if new_voxel_count(previous.occupied_centers_m, current.occupied_centers_m,
-                               current.resolution_m) <= SETTLED_MAX_NEW_VOXELS:
+            if map_settled(previous.occupied_centers_m, current.occupied_centers_m, current.resolution_m):
                 return
             previous = current
 

@@ -33,7 +33,7 @@ from robonav.pipeline.messages import (ErrorReply, ExecuteRequest, ExecuteRespon
                                        StopResponse)
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.trajectory.execution import PATH_BLOCKED, ExecutionStateMachine, Limits, WatchdogConfig
-from robonav.pipeline.trajectory.path_guard import SETTLED_MAX_NEW_VOXELS, PathGuard, new_voxel_count
+from robonav.pipeline.trajectory.path_guard import PathGuard, map_settled
 from robonav.pipeline.trajectory.timing import JointTrajectory, time_parameterize
 from robonav.pipeline.wire import ErrorCode, ProtocolError, unpack
 from robonav.services.client import QueryFailed, query_one
@@ -348,22 +348,18 @@ class ExecutorNode(Node):
                                    + "; ".join(errors[-3:]))
 
     def _wait_settled_map(self, rested_at: float) -> None:
-        """Hold the replan until two held maps stamped after `rested_at` agree (the second adds
-        at most `SETTLED_MAX_NEW_VOXELS`), or `executor.replan_settle_s` passes."""
+        """Hold the replan until the two newest held maps, both stamped after `rested_at`, agree
+        (`map_settled`), or `executor.replan_settle_s` passes."""
         deadline = time.monotonic() + self.cfg.executor.replan_settle_s
-        decoded: dict[bytes, Occupancy | None] = {}
+        judged: bytes | None = None  # the newest map already compared with the one before
         while time.monotonic() < deadline:
             with self._map_lock:
                 wires = list(self._recent_map_wires)[-2:]
-            for wire in wires:
-                if wire not in decoded:
-                    decoded[wire] = self._decoded(wire)
-            maps = [decoded[wire] for wire in wires]
-            if len(maps) == 2 and all(m is not None and m.stamp > rested_at for m in maps):
-                before, now = maps
-                assert before is not None and now is not None
-                if new_voxel_count(before.occupied_centers_m, now.occupied_centers_m,
-                                   now.resolution_m) <= SETTLED_MAX_NEW_VOXELS:
+            if len(wires) == 2 and wires[1] is not judged:
+                judged = wires[1]
+                before, now = self._decoded(wires[0]), self._decoded(wires[1])
+                if before is not None and now is not None and before.stamp > rested_at and \
+                        map_settled(before.occupied_centers_m, now.occupied_centers_m, now.resolution_m):
                     return
             if self._monitor_stop.wait(0.02):
                 return

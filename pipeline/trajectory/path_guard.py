@@ -154,3 +154,8 @@ def new_voxel_count(previous_centres_m: npt.ArrayLike, centres_m: npt.ArrayLike,
     before = _voxel_keys(np.asarray(previous_centres_m, dtype=np.float64).reshape(-1, 3), voxel_m)
     now = _voxel_keys(np.asarray(centres_m, dtype=np.float64).reshape(-1, 3), voxel_m)
     return int(np.count_nonzero(~np.isin(now, before)))
+
+
+def map_settled(previous_centres_m: npt.ArrayLike, centres_m: npt.ArrayLike, voxel_m: float) -> bool:
+    """Whether a map adds at most `SETTLED_MAX_NEW_VOXELS` to the one before it."""
+    return new_voxel_count(previous_centres_m, centres_m, voxel_m) <= SETTLED_MAX_NEW_VOXELS
