@@ -142,9 +142,9 @@ class LinkKinematics:
         return int(np.max(self.q_slot)) + 1
 
     def new_buffers(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        """Scratch (J + 2, 3, 3), (J + 2, 3) and output (L, 3, 3), (L, 3) arrays for `forward_links`."""
+        """Scratch (J + 3, 3, 3), (J + 3, 3) and output (L, 3, 3), (L, 3) arrays for `forward_links`."""
         n_joints, n_links = self.parent.shape[0], self.link_count
-        return (np.zeros((n_joints + 2, 3, 3)), np.zeros((n_joints + 2, 3)), np.zeros((n_links, 3, 3)),
+        return (np.zeros((n_joints + 3, 3, 3)), np.zeros((n_joints + 3, 3)), np.zeros((n_links, 3, 3)),
                 np.zeros((n_links, 3)))
 
     def link_pose_stack(self, q: FloatArray) -> FloatArray:
@@ -171,14 +171,25 @@ class LinkKinematics:
 
 
 @nb.njit(cache=True, inline="always")
-def _compose(a_rotation: FloatArray, a_translation: FloatArray, b_rotation: FloatArray, b_translation: FloatArray,
-             out_rotation: FloatArray, out_translation: FloatArray) -> None:
-    """out = a @ b for rigid transforms given as (3, 3) rotation and (3,) translation; out may not alias a or b."""
+def _compose(a_rotation: FloatArray, a_row: int, a_translation: FloatArray, b_rotation: FloatArray, b_row: int,
+             b_translation: FloatArray, out_rotation: FloatArray, out_row: int, out_translation: FloatArray) -> None:
+    """out[out_row] = a[a_row] @ b[b_row] for stacks of rigid transforms given as rotations (N, 3, 3)
+    and translations (N, 3); the output row may not be an input row.
+
+    Rows are indexed rather than passed as views: in compiled code every view of an array is a
+    reference-counted object, and forward kinematics took a third longer through them. Operands
+    are read into locals first, since the compiler cannot prove the output aliases neither."""
+    b00, b01, b02 = b_rotation[b_row, 0, 0], b_rotation[b_row, 0, 1], b_rotation[b_row, 0, 2]
+    b10, b11, b12 = b_rotation[b_row, 1, 0], b_rotation[b_row, 1, 1], b_rotation[b_row, 1, 2]
+    b20, b21, b22 = b_rotation[b_row, 2, 0], b_rotation[b_row, 2, 1], b_rotation[b_row, 2, 2]
+    bx, by, bz = b_translation[b_row, 0], b_translation[b_row, 1], b_translation[b_row, 2]
     for r in range(3):
-        for c in range(3):
-            out_rotation[r, c] = a_rotation[r, 0] * b_rotation[0, c] + a_rotation[r, 1] * b_rotation[1, c] + a_rotation[r, 2] * b_rotation[2, c]
-        out_translation[r] = (a_translation[r] + a_rotation[r, 0] * b_translation[0] + a_rotation[r, 1] * b_translation[1]
-                              + a_rotation[r, 2] * b_translation[2])
+        a0, a1, a2 = a_rotation[a_row, r, 0], a_rotation[a_row, r, 1], a_rotation[a_row, r, 2]
+        at = a_translation[a_row, r]
+        out_rotation[out_row, r, 0] = a0 * b00 + a1 * b10 + a2 * b20
+        out_rotation[out_row, r, 1] = a0 * b01 + a1 * b11 + a2 * b21
+        out_rotation[out_row, r, 2] = a0 * b02 + a1 * b12 + a2 * b22
+        out_translation[out_row, r] = at + a0 * bx + a1 * by + a2 * bz
 
 
 @nb.njit(cache=True, nogil=True)
@@ -206,14 +217,14 @@ def forward_links(
     Args:
         q: (dof,) configuration in `RobotModel.joint_names` order [rad or m].
         parent ... joint_from_base_translation_m: `LinkKinematics.arrays()`.
-        root_from_joint_rotation: (J + 2, 3, 3) scratch, overwritten (two spare rows for temporaries).
-        root_from_joint_translation_m: (J + 2, 3) scratch, overwritten.
+        root_from_joint_rotation: (J + 3, 3, 3) scratch, overwritten (three spare rows for temporaries).
+        root_from_joint_translation_m: (J + 3, 3) scratch, overwritten.
         world_from_link_rotation: (L, 3, 3) output.
         world_from_link_translation_m: (L, 3) output [m].
     """
     n_joints = parent.shape[0]
-    # Two spare scratch rows hold temporaries, so a call allocates nothing.
-    tmp, world = n_joints, n_joints + 1
+    # Spare scratch rows hold temporaries, so a call allocates nothing.
+    motion, tmp, world = n_joints, n_joints + 1, n_joints + 2
     rot, trans = root_from_joint_rotation, root_from_joint_translation_m
     for r in range(3):
         for c in range(3):
@@ -222,32 +233,34 @@ def forward_links(
     for j in range(1, n_joints):
         value = q[q_slot[j]]
         ax, ay, az = joint_axis[j, 0], joint_axis[j, 1], joint_axis[j, 2]
-        # tmp = joint motion: a rotation about, or a translation along, the joint axis.
+        # motion: a rotation about, or a translation along, the joint axis.
         if joint_type[j] == REVOLUTE:
             c, s = np.cos(value), np.sin(value)
             v = 1.0 - c
-            rot[tmp, 0, 0] = c + ax * ax * v
-            rot[tmp, 0, 1] = ax * ay * v - az * s
-            rot[tmp, 0, 2] = ax * az * v + ay * s
-            rot[tmp, 1, 0] = ay * ax * v + az * s
-            rot[tmp, 1, 1] = c + ay * ay * v
-            rot[tmp, 1, 2] = ay * az * v - ax * s
-            rot[tmp, 2, 0] = az * ax * v - ay * s
-            rot[tmp, 2, 1] = az * ay * v + ax * s
-            rot[tmp, 2, 2] = c + az * az * v
-            trans[tmp, 0] = trans[tmp, 1] = trans[tmp, 2] = 0.0
+            rot[motion, 0, 0] = c + ax * ax * v
+            rot[motion, 0, 1] = ax * ay * v - az * s
+            rot[motion, 0, 2] = ax * az * v + ay * s
+            rot[motion, 1, 0] = ay * ax * v + az * s
+            rot[motion, 1, 1] = c + ay * ay * v
+            rot[motion, 1, 2] = ay * az * v - ax * s
+            rot[motion, 2, 0] = az * ax * v - ay * s
+            rot[motion, 2, 1] = az * ay * v + ax * s
+            rot[motion, 2, 2] = c + az * az * v
+            trans[motion, 0] = trans[motion, 1] = trans[motion, 2] = 0.0
         else:
             for r in range(3):
                 for cc in range(3):
-                    rot[tmp, r, cc] = 1.0 if r == cc else 0.0
-            trans[tmp, 0], trans[tmp, 1], trans[tmp, 2] = ax * value, ay * value, az * value
-        # world row as a second temporary: parent_from_joint(q) = placement @ motion.
-        _compose(parent_from_joint_rotation[j], parent_from_joint_translation_m[j], rot[tmp], trans[tmp],
-                 rot[world], trans[world])
-        _compose(rot[parent[j]], trans[parent[j]], rot[world], trans[world], rot[j], trans[j])
+                    rot[motion, r, cc] = 1.0 if r == cc else 0.0
+            trans[motion, 0], trans[motion, 1], trans[motion, 2] = ax * value, ay * value, az * value
+        # parent_from_joint(q) = placement @ motion, then root_from_joint = root_from_parent @ that.
+        _compose(parent_from_joint_rotation, j, parent_from_joint_translation_m, rot, motion, trans, rot, tmp, trans)
+        _compose(rot, parent[j], trans, rot, tmp, trans, rot, j, trans)
     # world_from_root = inverse(root_from_base): the base link's frame is the world frame.
-    _compose(rot[base_joint], trans[base_joint], joint_from_base_rotation, joint_from_base_translation_m,
-             rot[tmp], trans[tmp])
+    for r in range(3):
+        for cc in range(3):
+            rot[motion, r, cc] = joint_from_base_rotation[r, cc]
+        trans[motion, r] = joint_from_base_translation_m[r]
+    _compose(rot, base_joint, trans, rot, motion, trans, rot, tmp, trans)
     for r in range(3):
         for cc in range(3):
             rot[world, r, cc] = rot[tmp, cc, r]
@@ -255,11 +268,9 @@ def forward_links(
         trans[world, r] = -(rot[world, r, 0] * trans[tmp, 0] + rot[world, r, 1] * trans[tmp, 1]
                             + rot[world, r, 2] * trans[tmp, 2])
     for link in range(link_joint.shape[0]):
-        j = link_joint[link]
-        _compose(rot[j], trans[j], joint_from_link_rotation[link], joint_from_link_translation_m[link],
-                 rot[tmp], trans[tmp])
-        _compose(rot[world], trans[world], rot[tmp], trans[tmp],
-                 world_from_link_rotation[link], world_from_link_translation_m[link])
+        _compose(rot, link_joint[link], trans, joint_from_link_rotation, link, joint_from_link_translation_m,
+                 rot, tmp, trans)
+        _compose(rot, world, trans, rot, tmp, trans, world_from_link_rotation, link, world_from_link_translation_m)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -267,8 +278,8 @@ def _poses_batch(qs, parent, parent_from_joint_rotation, parent_from_joint_trans
                  q_slot, link_joint, joint_from_link_rotation, joint_from_link_translation_m, base_joint,
                  joint_from_base_rotation, joint_from_base_translation_m, out):  # pragma: no cover (compiled)
     n_joints, n_links = parent.shape[0], link_joint.shape[0]
-    scratch_rotation = np.zeros((n_joints + 2, 3, 3))
-    scratch_translation = np.zeros((n_joints + 2, 3))
+    scratch_rotation = np.zeros((n_joints + 3, 3, 3))
+    scratch_translation = np.zeros((n_joints + 3, 3))
     link_rotation = np.zeros((n_links, 3, 3))
     link_translation = np.zeros((n_links, 3))
     for m in range(qs.shape[0]):
