@@ -250,16 +250,18 @@ class SphereBroadPhase:
     # --- queries -------------------------------------------------------------------------------
 
     def _refresh_args(self) -> None:
-        # Built once per world change: numba unboxes ~30 arguments per call, and rebuilding the
-        # tuple each call would add Python work to the hot path.
+        # Built once per world change: rebuilding the tuple each call would add Python work to
+        # the hot path. Grouped in a few tuples so a call has fewer than 30 arguments: CPython
+        # passes longer argument lists as a *args tuple, and numba cannot inline such a call.
         if not hasattr(self, "_att_world") or not hasattr(self, "_has_grid") or not hasattr(self, "_obj_kind"):
             return
-        self._args = (self._kin_args, *self._scratch, self._centers_link, self._radii_self, self._radii_world,
-                self._link_start, self._bound_center_link, self._bound_self, self._bound_world, self._self_pairs,
-                self._sphere_world, self._bound_world_center, self._obj_kind, self._obj_rotation,
-                self._obj_translation, self._obj_param, self._obj_bound, self._has_grid, self._grid,
-                self._grid_origin, self._grid_voxel, self._grid_box, self._occupied, self._att_center_link, self._att_radius,
-                self._att_radius_world, self._att_link, self._att_skip, self._att_world)
+        spheres = (self._centers_link, self._radii_self, self._radii_world, self._link_start, self._bound_center_link,
+                   self._bound_self, self._bound_world, self._self_pairs, self._sphere_world, self._bound_world_center)
+        objects = (self._obj_kind, self._obj_rotation, self._obj_translation, self._obj_param, self._obj_bound)
+        grid = (self._has_grid, self._grid, self._grid_origin, self._grid_voxel, self._grid_box, self._occupied)
+        attached = (self._att_center_link, self._att_radius, self._att_radius_world, self._att_link, self._att_skip,
+                    self._att_world)
+        self._args = (self._kin_args, self._scratch, spheres, objects, grid, attached)
 
     def state_suspect(self, q: FloatArray) -> bool:
         """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free."""
@@ -409,12 +411,14 @@ def _rows_within(points_a, i: int, points_b, j: int, reach: float) -> bool:
     return dx * dx + dy * dy + dz * dz <= r * r
 
 
-@nb.njit(cache=True)
-def _state_suspect(q, kin, rot_scratch, trans_scratch, link_rotation, link_translation, centers_link, radii_self,
-                   radii_world, link_start, bound_center_link, bound_self, bound_world, self_pairs, sphere_world,
-                   bound_world_center, obj_kind, obj_rotation, obj_translation, obj_param, obj_bound, has_grid, grid,
-                   grid_origin, grid_voxel, grid_box, occupied, att_center_link, att_radius, att_radius_world, att_link,
-                   att_skip, att_world) -> bool:  # pragma: no cover (compiled)
+@nb.njit(cache=True, inline="always")
+def _state_suspect(q, kin, scratch, spheres, objects, grid_args, attached) -> bool:  # pragma: no cover (compiled)
+    rot_scratch, trans_scratch, link_rotation, link_translation = scratch
+    (centers_link, radii_self, radii_world, link_start, bound_center_link, bound_self, bound_world, self_pairs,
+     sphere_world, bound_world_center) = spheres
+    obj_kind, obj_rotation, obj_translation, obj_param, obj_bound = objects
+    has_grid, grid, grid_origin, grid_voxel, grid_box, occupied = grid_args
+    att_center_link, att_radius, att_radius_world, att_link, att_skip, att_world = attached
     forward_links(q, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8], kin[9], kin[10],
                   kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
     n_links = link_start.shape[0] - 1
@@ -498,11 +502,8 @@ def _state_suspect(q, kin, rot_scratch, trans_scratch, link_rotation, link_trans
 
 
 @nb.njit(cache=True)
-def _edge_suspects(a, b, steps, first_only, out, queue, kin, rot_scratch, trans_scratch, link_rotation,
-                   link_translation, centers_link, radii_self, radii_world, link_start, bound_center_link, bound_self,
-                   bound_world, self_pairs, sphere_world, bound_world_center, obj_kind, obj_rotation, obj_translation,
-                   obj_param, obj_bound, has_grid, grid, grid_origin, grid_voxel, grid_box, occupied, att_center_link,
-                   att_radius, att_radius_world, att_link, att_skip, att_world) -> int:  # pragma: no cover
+def _edge_suspects(a, b, steps, first_only, out, queue, kin, scratch, spheres, objects, grid_args,
+                   attached) -> int:  # pragma: no cover (compiled)
     dof = a.shape[0]
     q = np.empty(dof)
     diff = b - a
@@ -534,11 +535,7 @@ def _edge_suspects(a, b, steps, first_only, out, queue, kin, rot_scratch, trans_
         t = k / steps
         for j in range(dof):
             q[j] = a[j] + diff[j] * t
-        if _state_suspect(q, kin, rot_scratch, trans_scratch, link_rotation, link_translation, centers_link,
-                          radii_self, radii_world, link_start, bound_center_link, bound_self, bound_world, self_pairs,
-                          sphere_world, bound_world_center, obj_kind, obj_rotation, obj_translation, obj_param,
-                          obj_bound, has_grid, grid, grid_origin, grid_voxel, grid_box, occupied, att_center_link, att_radius,
-                          att_radius_world, att_link, att_skip, att_world):
+        if _state_suspect(q, kin, scratch, spheres, objects, grid_args, attached):
             out[count] = k
             count += 1
             if first_only:
