@@ -422,19 +422,20 @@ class MotionPlanner:
     def _finish(self, problem: PlanProblem, path: FloatArray, goals: FloatArray, motion_valid,  # noqa: ANN001
                 planner_id: str, planning_time_s: float, rng: np.random.Generator) -> PlanOutcome:
         simplify_start = time.perf_counter()
+        raw = path
         if problem.simplify and len(path) > 2:
             path = shortcut_path(path, motion_valid=motion_valid, rng=rng, iterations=self.config.shortcut_iterations,
                                  patience=self.config.shortcut_patience)
         simplification_time_s = time.perf_counter() - simplify_start
-        # Re-validate what we return, exactly: a path is only as good as its last check.
+        # Re-validate what we return, exactly: a path is only as good as its last check. The
+        # shortcut keeps pieces of checked segments unchecked, so when its path fails, the
+        # search's own path (every segment checked) is the fallback.
         sphere_first, self._sphere_first = self._sphere_first, False
-        fine_rad = self.config.path_check_resolution_rad
         try:
-            valid = all(motion_valid(a, b) and (fine_rad <= 0 or self.world.motion_valid(a, b, fine_rad))
-                        for a, b in zip(path[:-1], path[1:]))
+            path = next((p for p in ((path,) if path is raw else (path, raw)) if self._revalidate(p, motion_valid)), None)
         finally:
             self._sphere_first = sphere_first
-        if not valid:
+        if path is None:
             return PlanOutcome(PlanStatus.TIMEOUT, "the found path failed re-validation", planner_id=planner_id,
                                planning_time_s=planning_time_s)
         goal_index = int(np.argmin(np.max(np.abs(goals - path[-1]), axis=1)))
@@ -447,6 +448,18 @@ class MotionPlanner:
             min_clearance_m=self._sampled_clearance_m(path) if self.config.report_clearance else float("inf"),
             goal_index=goal_index,
         )
+
+    def _revalidate(self, path: FloatArray, motion_valid) -> bool:  # noqa: ANN001
+        """Every segment of `path` passes the exact check at the path check resolution.
+
+        With a finer path check than the edges, the edge-resolution check is not repeated (the
+        finer one is the stricter), unless the request's own check adds workspace bounds."""
+        fine_rad = self.config.path_check_resolution_rad
+        if fine_rad <= 0:
+            return all(motion_valid(a, b) for a, b in zip(path[:-1], path[1:]))
+        extra = motion_valid is not self._motion_valid
+        return all(self.world.motion_valid(a, b, fine_rad) and (not extra or motion_valid(a, b))
+                   for a, b in zip(path[:-1], path[1:]))
 
     def _sampled_clearance_m(self, path: FloatArray) -> float:
         """Clearance at the waypoints and evenly spread states between them.
