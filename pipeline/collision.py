@@ -345,6 +345,9 @@ class CollisionWorld:
         bare links against the world too (attached objects stay padded), e.g. to tell a state
         inside the padding from one touching an obstacle.
         """
+        # The spheres contain the padded hulls: when they touch nothing, neither does FCL.
+        if self._broad_phase_usable() and not self._broad_phase.state_suspect(self._robot.validate_q(q)):
+            return []
         return self._check(q, first_only=False, padded=padded)
 
     def clearance_m(self, q: FloatArray) -> float:
