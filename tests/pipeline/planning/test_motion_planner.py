@@ -217,3 +217,27 @@ def test_the_returned_path_is_rechecked_at_the_path_check_resolution(panda: Robo
     assert (outcome.status is PlanStatus.SUCCESS) is returned, outcome.detail
     if not returned:
         assert "re-validation" in outcome.detail
+
+
+def test_a_shortcut_path_that_fails_the_recheck_falls_back_to_the_searched_path(panda: RobotModel) -> None:
+    """Shortcutting keeps pieces of checked segments unchecked, so the re-check may refuse its
+    path; the search's own path (here: a check that only trusts its segments) is returned."""
+    planner = MotionPlanner(panda, CollisionWorld(panda, padding_m=0.0), PlannerConfig())
+    home = panda.home_position_rad
+    raw = np.array([home, home + 0.3, home - 0.3, home + 0.1])
+    raw_segments = {(tuple(a), tuple(b)) for a, b in zip(raw[:-1], raw[1:])}
+    asked: set[tuple[tuple[float, ...], tuple[float, ...]]] = set()
+
+    def first_answer_only(a: np.ndarray, b: np.ndarray) -> bool:
+        """Every segment of the raw path passes; any other passes only the first time it is asked."""
+        key = (tuple(a), tuple(b))
+        fresh = key not in asked
+        asked.add(key)
+        return key in raw_segments or fresh
+
+    problem = PlanProblem(home, raw[-1], seed=0)
+    outcome = planner._finish(problem, raw, raw[-1:], first_answer_only, "rrtconnect", 0.0,  # noqa: SLF001
+                              np.random.default_rng(0))
+    assert any(key not in raw_segments for key in asked)  # the shortcut did change the path
+    assert outcome.status is PlanStatus.SUCCESS
+    np.testing.assert_array_equal(outcome.path, raw)
