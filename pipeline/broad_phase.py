@@ -110,6 +110,7 @@ class SphereBroadPhase:
         home = robot.home_position_rad
         self.state_suspect(home)
         self.edge_suspects(home, home, 1.0)
+        self.clearance_lower_bound_m(home)
 
     # --- world ---------------------------------------------------------------------------------
 
@@ -266,6 +267,12 @@ class SphereBroadPhase:
     def state_suspect(self, q: FloatArray) -> bool:
         """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free."""
         return bool(_state_suspect(np.array(q, dtype=np.float64), *self._args))
+
+    def clearance_lower_bound_m(self, q: FloatArray) -> float:
+        """A lower bound on the distance from the unpadded robot at `q` (dof,) to the objects and
+        occupied voxels [m]: the spheres contain the bare hulls. Negative when spheres overlap
+        the world, +inf when it is empty; attached spheres count too (their padding left out)."""
+        return float(_clearance_lower_bound(np.array(q, dtype=np.float64), *self._args))
 
     def self_suspect(self, q: FloatArray) -> bool:
         """True if spheres of a self-collision pair touch at `q` (dof,) (the world ignored).
@@ -501,6 +508,40 @@ def _state_suspect(q, kin, scratch, spheres, objects, grid_args, attached) -> bo
                 if dx * dx + dy * dy + dz * dz <= reach * reach:
                     return True
     return False
+
+
+@nb.njit(cache=True)
+def _clearance_lower_bound(q, kin, scratch, spheres, objects, grid_args, attached) -> float:  # pragma: no cover
+    rot_scratch, trans_scratch, link_rotation, link_translation = scratch
+    centers_link, radii_self, _, link_start, _, _, _, _, sphere_world, _ = spheres
+    obj_kind, obj_rotation, obj_translation, obj_param, _ = objects
+    has_grid, grid, grid_origin, grid_voxel, grid_box, _ = grid_args
+    att_center_link, att_radius, _, att_link, _, att_world = attached
+    forward_links(q, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8], kin[9], kin[10],
+                  kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
+    best = math.inf
+    n_links = link_start.shape[0] - 1
+    for li in range(n_links):
+        for s in range(link_start[li], link_start[li + 1]):
+            for r in range(3):
+                sphere_world[s, r] = (link_translation[li, r] + link_rotation[li, r, 0] * centers_link[s, 0]
+                                      + link_rotation[li, r, 1] * centers_link[s, 1]
+                                      + link_rotation[li, r, 2] * centers_link[s, 2])
+    for a in range(att_radius.shape[0]):
+        li = att_link[a]
+        for r in range(3):
+            att_world[a, r] = (link_translation[li, r] + link_rotation[li, r, 0] * att_center_link[a, 0]
+                               + link_rotation[li, r, 1] * att_center_link[a, 1]
+                               + link_rotation[li, r, 2] * att_center_link[a, 2])
+    for points, radii in ((sphere_world, radii_self), (att_world, att_radius)):
+        for s in range(radii.shape[0]):
+            x, y, z = points[s, 0], points[s, 1], points[s, 2]
+            for k in range(obj_kind.shape[0]):
+                best = min(best, _object_distance(x, y, z, k, obj_kind, obj_rotation, obj_translation, obj_param)
+                           - radii[s])
+            if has_grid:
+                best = min(best, _voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) - radii[s])
+    return best
 
 
 @nb.njit(cache=True)

@@ -373,6 +373,24 @@ class CollisionWorld:
             best = min(best, self._attached_clearance_m(q))
         return best
 
+    def min_clearance_m(self, states: FloatArray) -> float:
+        """Smallest `clearance_m` over `states` (M, dof), M >= 1 [m].
+
+        With the sphere model, states are measured in the order of their spheres' lower bound,
+        and those whose bound is no smaller than the best distance found are skipped: the same
+        answer from fewer FCL distance queries (each ~0.1 ms on primitives, up to ~10 ms on a
+        large octree)."""
+        arr = self._path(states)
+        if not self._broad_phase_usable():
+            return min(self.clearance_m(q) for q in arr)
+        bounds = [self._broad_phase.clearance_lower_bound_m(q) for q in arr]
+        best = math.inf
+        for m in np.argsort(bounds, kind="stable"):
+            if bounds[m] >= best:
+                break
+            best = min(best, self.clearance_m(arr[m]))
+        return best
+
     def _attached_clearance_m(self, q: FloatArray) -> float:
         """Smallest distance [m] from the unpadded attached objects to the objects and octree; needs `_pose(q)` first."""
         best = math.inf
@@ -520,12 +538,11 @@ class CollisionWorld:
     def path_clearance_m(self, path: FloatArray, resolution_rad: float) -> float:
         """Smallest `clearance_m` over `path` (K, dof) sampled at most `resolution_rad` apart [m]."""
         arr = self._path(path)
-        best = self.clearance_m(arr[0])
+        states = [arr[0]]
         for i in range(arr.shape[0] - 1):
             steps = _step_count(arr[i], arr[i + 1], resolution_rad)
-            for k in range(1, steps + 1):
-                best = min(best, self.clearance_m(arr[i] + (arr[i + 1] - arr[i]) * (k / steps)))
-        return best
+            states += [arr[i] + (arr[i + 1] - arr[i]) * (k / steps) for k in range(1, steps + 1)]
+        return self.min_clearance_m(np.array(states))
 
     def _path(self, path: FloatArray) -> FloatArray:
         arr = np.asarray(path, dtype=np.float64)

@@ -146,6 +146,32 @@ def test_voxels_conservative_and_world_answers_equal(panda: RobotModel) -> None:
     assert [fast.in_collision(q) for q in qs] == slow_answers
     broad = fast._broad_phase  # noqa: SLF001
     assert all(broad.state_suspect(q) for q, hit in zip(qs, slow_answers) if hit)
+    assert all(broad.clearance_lower_bound_m(q) <= slow.clearance_m(q) + 1e-9 for q in qs[:40])
     fast.clear_octree()
     assert not fast.in_collision(panda.home_position_rad)
     assert not broad.state_suspect(panda.home_position_rad)
+
+
+def test_clearance_lower_bound_and_min_clearance(panda: RobotModel,
+                                                  worlds: tuple[CollisionWorld, CollisionWorld]) -> None:
+    """The spheres' bound never exceeds FCL's distance from the bare hulls, and the
+    bound-ordered minimum over states equals the plain minimum with fewer FCL queries."""
+    fast, slow = worlds
+    broad = fast._broad_phase  # noqa: SLF001
+    qs = _random_states(panda, 200, seed=15)
+    exact = np.array([slow.clearance_m(q) for q in qs])
+    bounds = np.array([broad.clearance_lower_bound_m(q) for q in qs])
+    assert np.all(bounds <= exact + 1e-9)
+    assert np.any(exact > 0) and np.median(exact - bounds) < 0.05  # a bound, and a useful one
+    queried = []
+    original = fast.clearance_m
+    fast.clearance_m = lambda q: queried.append(q) or original(q)  # type: ignore[method-assign]
+    try:
+        for chunk in np.array_split(qs, 10):
+            assert fast.min_clearance_m(chunk) == min(slow.clearance_m(q) for q in chunk)
+    finally:
+        del fast.clearance_m
+    assert len(queried) < len(qs) / 2
+    path = qs[:3]
+    assert fast.path_clearance_m(path, 0.2) == slow.path_clearance_m(path, 0.2)
+    assert SphereBroadPhase(panda).clearance_lower_bound_m(panda.home_position_rad) == np.inf  # empty world
