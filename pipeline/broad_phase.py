@@ -432,15 +432,20 @@ def _state_suspect(q, kin, scratch, spheres, objects, grid_args, attached) -> bo
                   kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
     n_links = link_start.shape[0] - 1
     for li in range(n_links):
-        for r in range(3):
-            bound_world_center[li, r] = (link_translation[li, r] + link_rotation[li, r, 0] * bound_center_link[li, 0]
-                                         + link_rotation[li, r, 1] * bound_center_link[li, 1]
-                                         + link_rotation[li, r, 2] * bound_center_link[li, 2])
+        # The pose in locals: stores into sphere_world would otherwise force its reload per sphere.
+        r00, r01, r02 = link_rotation[li, 0, 0], link_rotation[li, 0, 1], link_rotation[li, 0, 2]
+        r10, r11, r12 = link_rotation[li, 1, 0], link_rotation[li, 1, 1], link_rotation[li, 1, 2]
+        r20, r21, r22 = link_rotation[li, 2, 0], link_rotation[li, 2, 1], link_rotation[li, 2, 2]
+        tx, ty, tz = link_translation[li, 0], link_translation[li, 1], link_translation[li, 2]
+        cx, cy, cz = bound_center_link[li, 0], bound_center_link[li, 1], bound_center_link[li, 2]
+        bound_world_center[li, 0] = tx + r00 * cx + r01 * cy + r02 * cz
+        bound_world_center[li, 1] = ty + r10 * cx + r11 * cy + r12 * cz
+        bound_world_center[li, 2] = tz + r20 * cx + r21 * cy + r22 * cz
         for s in range(link_start[li], link_start[li + 1]):
-            for r in range(3):
-                sphere_world[s, r] = (link_translation[li, r] + link_rotation[li, r, 0] * centers_link[s, 0]
-                                      + link_rotation[li, r, 1] * centers_link[s, 1]
-                                      + link_rotation[li, r, 2] * centers_link[s, 2])
+            cx, cy, cz = centers_link[s, 0], centers_link[s, 1], centers_link[s, 2]
+            sphere_world[s, 0] = tx + r00 * cx + r01 * cy + r02 * cz
+            sphere_world[s, 1] = ty + r10 * cx + r11 * cy + r12 * cz
+            sphere_world[s, 2] = tz + r20 * cx + r21 * cy + r22 * cz
     n_objects = obj_kind.shape[0]
     # Robot vs primitives: link bounding sphere first, then the link's spheres.
     for li in range(n_links):
