@@ -421,17 +421,10 @@ def _rows_within(points_a, i: int, points_b, j: int, reach: float) -> bool:
 
 
 @nb.njit(cache=True, inline="always")
-def _state_suspect(q, kin, scratch, spheres, objects, grid_args, attached) -> bool:  # pragma: no cover (compiled)
-    rot_scratch, trans_scratch, link_rotation, link_translation = scratch
-    (centers_link, radii_self, radii_world, link_start, bound_center_link, bound_self, bound_world, self_pairs,
-     sphere_world, bound_world_center) = spheres
-    obj_kind, obj_rotation, obj_translation, obj_param, obj_bound = objects
-    has_grid, grid, grid_origin, grid_voxel, grid_box, occupied = grid_args
-    att_center_link, att_radius, att_radius_world, att_link, att_skip, att_world = attached
-    forward_links(q, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8], kin[9], kin[10],
-                  kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
-    n_links = link_start.shape[0] - 1
-    for li in range(n_links):
+def _place_spheres(link_rotation, link_translation, link_start, centers_link, bound_center_link, sphere_world,
+                   bound_world_center) -> None:  # pragma: no cover (compiled)
+    """World-frame centres of every link's spheres and of its bounding sphere, from the link poses."""
+    for li in range(link_start.shape[0] - 1):
         # The pose in locals: stores into sphere_world would otherwise force its reload per sphere.
         r00, r01, r02 = link_rotation[li, 0, 0], link_rotation[li, 0, 1], link_rotation[li, 0, 2]
         r10, r11, r12 = link_rotation[li, 1, 0], link_rotation[li, 1, 1], link_rotation[li, 1, 2]
@@ -446,6 +439,32 @@ def _state_suspect(q, kin, scratch, spheres, objects, grid_args, attached) -> bo
             sphere_world[s, 0] = tx + r00 * cx + r01 * cy + r02 * cz
             sphere_world[s, 1] = ty + r10 * cx + r11 * cy + r12 * cz
             sphere_world[s, 2] = tz + r20 * cx + r21 * cy + r22 * cz
+
+
+@nb.njit(cache=True, inline="always")
+def _place_attached(link_rotation, link_translation, att_link, att_center_link, att_world) -> None:  # pragma: no cover
+    """World-frame centres of the attached spheres, from the poses of the links they ride on."""
+    for a in range(att_link.shape[0]):
+        li = att_link[a]
+        for r in range(3):
+            att_world[a, r] = (link_translation[li, r] + link_rotation[li, r, 0] * att_center_link[a, 0]
+                               + link_rotation[li, r, 1] * att_center_link[a, 1]
+                               + link_rotation[li, r, 2] * att_center_link[a, 2])
+
+
+@nb.njit(cache=True, inline="always")
+def _state_suspect(q, kin, scratch, spheres, objects, grid_args, attached) -> bool:  # pragma: no cover (compiled)
+    rot_scratch, trans_scratch, link_rotation, link_translation = scratch
+    (centers_link, radii_self, radii_world, link_start, bound_center_link, bound_self, bound_world, self_pairs,
+     sphere_world, bound_world_center) = spheres
+    obj_kind, obj_rotation, obj_translation, obj_param, obj_bound = objects
+    has_grid, grid, grid_origin, grid_voxel, grid_box, occupied = grid_args
+    att_center_link, att_radius, att_radius_world, att_link, att_skip, att_world = attached
+    forward_links(q, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8], kin[9], kin[10],
+                  kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
+    n_links = link_start.shape[0] - 1
+    _place_spheres(link_rotation, link_translation, link_start, centers_link, bound_center_link, sphere_world,
+                   bound_world_center)
     n_objects = obj_kind.shape[0]
     # Robot vs primitives: link bounding sphere first, then the link's spheres.
     for li in range(n_links):
@@ -485,12 +504,8 @@ def _state_suspect(q, kin, scratch, spheres, objects, grid_args, attached) -> bo
                 if _rows_within(sphere_world, sa, sphere_world, sb, radii_self[sa] + radii_self[sb]):
                     return True
     # Attached spheres: against the world (padded) and the robot links they may not touch.
+    _place_attached(link_rotation, link_translation, att_link, att_center_link, att_world)
     for a in range(att_radius.shape[0]):
-        li = att_link[a]
-        for r in range(3):
-            att_world[a, r] = (link_translation[li, r] + link_rotation[li, r, 0] * att_center_link[a, 0]
-                               + link_rotation[li, r, 1] * att_center_link[a, 1]
-                               + link_rotation[li, r, 2] * att_center_link[a, 2])
         x, y, z = att_world[a, 0], att_world[a, 1], att_world[a, 2]
         for k in range(n_objects):
             if _object_distance(x, y, z, k, obj_kind, obj_rotation, obj_translation, obj_param) <= (
@@ -518,26 +533,16 @@ def _state_suspect(q, kin, scratch, spheres, objects, grid_args, attached) -> bo
 @nb.njit(cache=True)
 def _clearance_lower_bound(q, kin, scratch, spheres, objects, grid_args, attached) -> float:  # pragma: no cover
     rot_scratch, trans_scratch, link_rotation, link_translation = scratch
-    centers_link, radii_self, _, link_start, _, _, _, _, sphere_world, _ = spheres
+    centers_link, radii_self, _, link_start, bound_center_link, _, _, _, sphere_world, bound_world_center = spheres
     obj_kind, obj_rotation, obj_translation, obj_param, _ = objects
     has_grid, grid, grid_origin, grid_voxel, grid_box, _ = grid_args
     att_center_link, att_radius, _, att_link, _, att_world = attached
     forward_links(q, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8], kin[9], kin[10],
                   kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
     best = math.inf
-    n_links = link_start.shape[0] - 1
-    for li in range(n_links):
-        for s in range(link_start[li], link_start[li + 1]):
-            for r in range(3):
-                sphere_world[s, r] = (link_translation[li, r] + link_rotation[li, r, 0] * centers_link[s, 0]
-                                      + link_rotation[li, r, 1] * centers_link[s, 1]
-                                      + link_rotation[li, r, 2] * centers_link[s, 2])
-    for a in range(att_radius.shape[0]):
-        li = att_link[a]
-        for r in range(3):
-            att_world[a, r] = (link_translation[li, r] + link_rotation[li, r, 0] * att_center_link[a, 0]
-                               + link_rotation[li, r, 1] * att_center_link[a, 1]
-                               + link_rotation[li, r, 2] * att_center_link[a, 2])
+    _place_spheres(link_rotation, link_translation, link_start, centers_link, bound_center_link, sphere_world,
+                   bound_world_center)
+    _place_attached(link_rotation, link_translation, att_link, att_center_link, att_world)
     for points, radii in ((sphere_world, radii_self), (att_world, att_radius)):
         for s in range(radii.shape[0]):
             x, y, z = points[s, 0], points[s, 1], points[s, 2]
