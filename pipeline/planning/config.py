@@ -30,7 +30,7 @@ class PlannerConfig:
     """Stop shortcutting after this many attempts in a row that shortened nothing (0: never)."""
     sphere_first_share: float = 0.5
     """Share of the budget for the sphere-first search (0: exact search only; 1: sphere-first only)."""
-    sphere_first_exact_radius_rad: float = 0.3
+    sphere_first_exact_radius_rad: float = 0.5
     """Within this joint-space distance of the start or a goal, the sphere-first search still asks
     FCL about states the spheres flag [rad]."""
     start_escape_rad: float = 0.1
