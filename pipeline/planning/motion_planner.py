@@ -356,29 +356,39 @@ class MotionPlanner:
     def _search(self, problem: PlanProblem, start: FloatArray, goals: FloatArray, is_valid, motion_valid,  # noqa: ANN001
                 budget_s: float, rng: np.random.Generator) -> PlanOutcome:
         t0 = time.perf_counter()
+        deadline = t0 + budget_s
         planner_id = problem.planner_id
         direct = next((k for k, g in enumerate(goals) if motion_valid(start, g)), None)
         if direct is not None:
-            result = PlanResult(PlanStatus.SUCCESS, np.vstack([start, goals[direct]]), "direct segment",
-                                time.perf_counter() - t0)
-            if planner_id == "auto":
-                planner_id = "direct"
-        elif planner_id == "auto":
-            planner_id, result = self._auto(start, goals, budget_s, rng)
-        elif planner_id in PLANNER_CLASSES:
-            if is_valid is self._is_valid:
-                result = self._space.solve(planner_id, start, goals, time_limit_s=budget_s)
-            else:  # workspace bounds: a roadmap checked without them cannot be reused
-                space = OmplSpace(JointSpaceProblem(self.robot.lower_limits_rad, self.robot.upper_limits_rad,
-                                                    is_valid, motion_valid), range_rad=self.config.range_rad)
-                result = space.solve(planner_id, start, goals, time_limit_s=budget_s)
-        else:
-            result = self._baseline(planner_id, start, goals, is_valid, motion_valid, budget_s, rng)
-        self._remember(planner_id, result.success)
-        if not result.success or result.path is None:
-            return PlanOutcome(result.status, result.detail, planner_id=planner_id,
-                               planning_time_s=time.perf_counter() - t0)
-        return self._finish(problem, result.path, goals, motion_valid, planner_id, time.perf_counter() - t0, rng)
+            outcome = self._finish(problem, np.vstack([start, goals[direct]]), goals, motion_valid,
+                                   "direct" if planner_id == "auto" else planner_id, time.perf_counter() - t0, rng)
+            if outcome.status is PlanStatus.SUCCESS:
+                self._remember(outcome.planner_id, True)
+                return outcome
+            # The segment passed the edge check but not the finer path check: search instead.
+        while True:
+            remaining_s = deadline - time.perf_counter()
+            if problem.planner_id == "auto":
+                planner_id, result = self._auto(start, goals, remaining_s, rng)
+            elif planner_id in PLANNER_CLASSES:
+                if is_valid is self._is_valid:
+                    result = self._space.solve(planner_id, start, goals, time_limit_s=remaining_s)
+                else:  # workspace bounds: a roadmap checked without them cannot be reused
+                    space = OmplSpace(JointSpaceProblem(self.robot.lower_limits_rad, self.robot.upper_limits_rad,
+                                                        is_valid, motion_valid), range_rad=self.config.range_rad)
+                    result = space.solve(planner_id, start, goals, time_limit_s=remaining_s)
+            else:
+                result = self._baseline(planner_id, start, goals, is_valid, motion_valid, remaining_s, rng)
+            self._remember(planner_id, result.success)
+            if not result.success or result.path is None:
+                return PlanOutcome(result.status, result.detail, planner_id=planner_id,
+                                   planning_time_s=time.perf_counter() - t0)
+            outcome = self._finish(problem, result.path, goals, motion_valid, planner_id, time.perf_counter() - t0, rng)
+            # A sampled path that fails the finer re-check is drawn again while time is left (the
+            # deterministic baselines would only find the same path).
+            if (outcome.status is PlanStatus.SUCCESS or planner_id in BASELINES
+                    or time.perf_counter() >= deadline):
+                return outcome
 
     def _baseline(self, planner_id: str, start: FloatArray, goals: FloatArray, is_valid, motion_valid,  # noqa: ANN001
                   budget_s: float, rng: np.random.Generator) -> PlanResult:
