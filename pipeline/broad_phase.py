@@ -268,6 +268,10 @@ class SphereBroadPhase:
         """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free."""
         return bool(_state_suspect(np.array(q, dtype=np.float64), *self._args))
 
+    def link_pose_stack(self, q: FloatArray) -> FloatArray:
+        """world_from_link (L, 4, 4) of the collision links at `q` (dof,), compiled (`LinkKinematics`)."""
+        return self._kin.link_pose_stack(q)
+
     def clearance_lower_bound_m(self, q: FloatArray) -> float:
         """A lower bound on the distance from the unpadded robot at `q` (dof,) to the objects and
         occupied voxels [m]: the spheres contain the bare hulls. Negative when spheres overlap

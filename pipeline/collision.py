@@ -554,7 +554,10 @@ class CollisionWorld:
 
     def _pose(self, q: FloatArray) -> FloatArray:
         """Runs FK for `q`; FCL objects are then posed lazily. Returns shape centres (S, 3), world frame."""
-        poses = self._robot.link_pose_stack(q)
+        # The broad phase's compiled kinematics (read from the same Pinocchio model) cost less
+        # than half of a Pinocchio round trip, and every FCL check starts here.
+        poses = (self._robot.link_pose_stack(q) if self._broad_phase is None
+                 else self._broad_phase.link_pose_stack(self._robot.validate_q(q)))
         if not self._one_shape_per_link:
             poses = poses[self._shape_link_index]
         self._world_from_shape_link = poses
