@@ -311,6 +311,8 @@ class SphereBroadPhase:
         b = np.array(q_b, dtype=np.float64)
         if not (math.isfinite(resolution_rad) and resolution_rad > 0):
             raise ValueError(f"resolution_rad must be finite and > 0, got {resolution_rad}")
+        # Plain float and bool: an int would make numba compile another specialisation.
+        resolution_rad, first_only = float(resolution_rad), bool(first_only)
         count, steps = _edge_suspects(a, b, resolution_rad, first_only, self._step_buffer, self._queue, *self._args)
         if count < 0:
             # order (steps + 1 entries) and the FIFO of spans (< 2 * steps + 1 entries) share `_queue`.
