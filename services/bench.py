@@ -8,6 +8,8 @@ robot's collision MESHES (`pipeline/mesh_check.py`), not the hulls the planner p
 
 Timing is wall-clock around `MotionPlanner.plan` only (search, simplification and the
 planner's own re-validation); building the collision world or the occupancy map is setup.
+The planning thread's CPU time is reported beside it (`median_cpu_ms`): on a shared machine
+the wall time also holds the time the planner waited for a CPU.
 
 This file reads the problem files, runs the pure core and prints; no algorithm lives here.
 """
@@ -52,7 +54,8 @@ CLOUD_SPACING_M = 0.005
 """Spacing of the synthetic surface cloud for `--scene cloud` [m]."""
 CLOUD_ORIGIN_HEIGHT_M = 0.3
 """The synthetic camera sits this far above the cloud's highest point [m]."""
-SUMMARY_KEYS = ("problems", "solved", "solved_pct", "median_ms", "p95_ms", "median_length", "invalid_paths")
+SUMMARY_KEYS = ("problems", "solved", "solved_pct", "median_ms", "p95_ms", "median_length", "invalid_paths",
+                "median_cpu_ms")
 PROGRESS_WIDTH = 30
 
 SceneKind = Literal["primitives", "cloud"]
@@ -71,6 +74,9 @@ class ProblemRecord:
         path_valid: That path passed the fine mesh re-check (False when there is no path).
         length_rad: Joint-space length of the returned path, or None [rad].
         detail: The planner's detail, or the re-check's reason for rejecting the path.
+        cpu_ms: CPU time of the calling thread during the `plan` call [ms]; beside the wall
+            time it tells planning work from waiting on a busy machine (a `race` runs in
+            child processes, whose CPU time is not in it).
     """
 
     family: str
@@ -81,6 +87,7 @@ class ProblemRecord:
     path_valid: bool
     length_rad: float | None
     detail: str
+    cpu_ms: float | None = None
 
     @property
     def solved(self) -> bool:
@@ -288,18 +295,19 @@ def _run_one(family: str, problem: MbmProblem, robot: RobotModel, checker: MeshC
     request = PlanProblem(start_rad=problem.start, goals_rad=goals[0] if len(goals) == 1 else goals,
                           planner_id=planner_id, allowed_planning_time_s=planner_config.allowed_planning_time_s,
                           seed=seed, simplify=True)
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.thread_time()
     outcome = planner.plan(request)
     wall_ms = 1000.0 * (time.perf_counter() - t0)
+    cpu_ms = 1000.0 * (time.thread_time() - cpu0)
     status = outcome.status.value if isinstance(outcome.status, PlanStatus) else str(outcome.status)
     if outcome.path is None:
-        return ProblemRecord(family, problem.index, status, wall_ms, False, False, None, outcome.detail)
+        return ProblemRecord(family, problem.index, status, wall_ms, False, False, None, outcome.detail, cpu_ms)
     checker.set_objects(problem.obstacles)
     # A path may end at any goal of the set: hold it to the one it ends nearest to.
     reached = goals[int(np.argmin(np.max(np.abs(goals - outcome.path[-1]), axis=1)))]
     check = checker.check_path(outcome.path, start_rad=problem.start, goal_rad=reached)
     return ProblemRecord(family, problem.index, status, wall_ms, True, check.valid,
-                         path_length_rad(outcome.path), outcome.detail if check.valid else check.detail)
+                         path_length_rad(outcome.path), outcome.detail if check.valid else check.detail, cpu_ms)
 
 
 def occupancy_of_objects(objects: Sequence[SceneObject], *, seed: int,
@@ -341,6 +349,7 @@ def summarize(records: Sequence[ProblemRecord]) -> dict[str, Any]:
     solved = [r for r in records if r.solved]
     wall = np.array([r.wall_ms for r in records], dtype=np.float64)
     lengths = [r.length_rad for r in solved if r.length_rad is not None]
+    cpu = [r.cpu_ms for r in records if r.cpu_ms is not None]
     return {
         "problems": n,
         "solved": len(solved),
@@ -349,6 +358,7 @@ def summarize(records: Sequence[ProblemRecord]) -> dict[str, Any]:
         "p95_ms": _rounded(float(np.percentile(wall, 95))) if n else None,
         "median_length": _rounded(float(np.median(lengths)), 4) if lengths else None,
         "invalid_paths": sum(1 for r in records if r.returned_path and not r.path_valid),
+        "median_cpu_ms": _rounded(float(np.median(cpu))) if cpu and len(cpu) == n else None,
     }
 
 
@@ -365,7 +375,7 @@ def build_report(records: Sequence[ProblemRecord], *, config: dict[str, Any]) ->
 def format_table(report: dict[str, Any]) -> str:
     """The report's summaries as a fixed-width text table, one row per family and one overall."""
     header = f"{'family':<18} {'problems':>8} {'solved':>6} {'solved %':>8} {'median ms':>10} {'p95 ms':>9} " \
-             f"{'median len':>10} {'invalid':>7}"
+             f"{'median len':>10} {'invalid':>7} {'median cpu ms':>13}"
     rows = [header, "-" * len(header)]
     items = [*report["families"].items(), ("overall", report["overall"])]
     for i, (name, s) in enumerate(items):
@@ -373,7 +383,7 @@ def format_table(report: dict[str, Any]) -> str:
             rows.append("-" * len(header))
         rows.append(f"{name:<18} {s['problems']:>8} {s['solved']:>6} {s['solved_pct']:>8.1f} "
                     f"{_cell(s['median_ms'], 1):>10} {_cell(s['p95_ms'], 1):>9} {_cell(s['median_length'], 3):>10} "
-                    f"{s['invalid_paths']:>7}")
+                    f"{s['invalid_paths']:>7} {_cell(s.get('median_cpu_ms'), 1):>13}")
     return "\n".join(rows)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import os
 import re
@@ -58,6 +59,7 @@ def test_smoke_run_solves_every_problem_with_valid_paths(tmp_path: Path, capsys:
     assert overall["problems"] == n
     assert overall["solved"] == n and overall["solved_pct"] == 100.0, captured.out
     assert overall["invalid_paths"] == 0
+    assert 0 < overall["median_cpu_ms"] <= overall["median_ms"] * 1.5
     assert 0 < overall["median_ms"] <= overall["p95_ms"]
     assert overall["median_length"] > 0
     assert report["config"]["time_limit_s"] == 1.0 and report["config"]["scene"] == "primitives"
@@ -100,6 +102,9 @@ def test_summary_counts_times_over_all_problems_and_lengths_over_solved() -> Non
     assert summary["median_ms"] == pytest.approx(25.0)
     assert summary["p95_ms"] == pytest.approx(float(np.percentile([10, 30, 1000, 20], 95)))
     assert summary["median_length"] == pytest.approx(3.0)
+    assert summary["median_cpu_ms"] is None  # records made without a CPU time
+    timed = [dataclasses.replace(r, cpu_ms=cpu) for r, cpu in zip(records, (4.0, 6.0, 900.0, 5.0))]
+    assert summarize(timed)["median_cpu_ms"] == pytest.approx(5.5)
     none_solved = summarize([_record("b", 5.0, path=False, valid=False)])
     assert none_solved["solved"] == 0 and none_solved["median_length"] is None
     table = format_table({"overall": summary, "families": {"a": summary}, "config": {}})
