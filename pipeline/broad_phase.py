@@ -28,7 +28,7 @@ import numba as nb
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from robonav.pipeline.kinematics_batch import LinkKinematics, forward_links
+from robonav.pipeline.kinematics_batch import LinkKinematics, forward_links, forward_links_trig
 from robonav.pipeline.link_geometry import grow_hull
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.scene import SceneObject
@@ -266,7 +266,7 @@ class SphereBroadPhase:
 
     def state_suspect(self, q: FloatArray) -> bool:
         """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free."""
-        return bool(_state_suspect(np.array(q, dtype=np.float64), *self._args))
+        return bool(_one_state_suspect(np.array(q, dtype=np.float64), *self._args))
 
     def link_pose_stack(self, q: FloatArray) -> FloatArray:
         """world_from_link (L, 4, 4) of the collision links at `q` (dof,), compiled (`LinkKinematics`)."""
@@ -458,16 +458,26 @@ def _place_attached(link_rotation, link_translation, att_link, att_center_link, 
                                + link_rotation[li, r, 2] * att_center_link[a, 2])
 
 
+@nb.njit(cache=True)
+def _one_state_suspect(q, kin, scratch, spheres, objects, grid_args, attached) -> bool:  # pragma: no cover (compiled)
+    trig = np.empty((1, 2, q.shape[0]))
+    for j in range(q.shape[0]):
+        trig[0, 0, j], trig[0, 1, j] = math.cos(q[j]), math.sin(q[j])
+    return _state_suspect(q, trig, 0, kin, scratch, spheres, objects, grid_args, attached)
+
+
 @nb.njit(cache=True, inline="always")
-def _state_suspect(q, kin, scratch, spheres, objects, grid_args, attached) -> bool:  # pragma: no cover (compiled)
+def _state_suspect(q, trig, row, kin, scratch, spheres, objects, grid_args,
+                   attached) -> bool:  # pragma: no cover (compiled)
+    """Whether any sphere at `q` is within contact; trig[row] holds cos(q) and sin(q) (2, dof)."""
     rot_scratch, trans_scratch, link_rotation, link_translation = scratch
     (centers_link, radii_self, radii_world, link_start, bound_center_link, bound_self, bound_world, self_pairs,
      sphere_world, bound_world_center) = spheres
     obj_kind, obj_rotation, obj_translation, obj_param, obj_bound = objects
     has_grid, grid, grid_origin, grid_voxel, grid_box, occupied = grid_args
     att_center_link, att_radius, att_radius_world, att_link, att_skip, att_world = attached
-    forward_links(q, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8], kin[9], kin[10],
-                  kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
+    forward_links_trig(q, trig, row, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8], kin[9],
+                       kin[10], kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
     n_links = link_start.shape[0] - 1
     _place_spheres(link_rotation, link_translation, link_start, centers_link, bound_center_link, sphere_world,
                    bound_world_center)
@@ -572,6 +582,20 @@ def _edge_suspects(a, b, resolution, first_only, out, queue, kin, scratch, spher
     steps = max(1, int(math.ceil(longest / resolution - 1e-9)))
     if out.shape[0] < 2 * steps + 2 or queue.shape[0] < 2 * steps + 2:
         return -1, steps
+    # cos and sin of every state's joints by a rotation per step (a sine and a cosine per joint
+    # and state cost a third of the kinematics), taken afresh every 16 steps against drift.
+    trig = np.empty((steps + 1, 2, dof))
+    for j in range(dof):
+        step = (b[j] - a[j]) / steps
+        c_step, s_step = math.cos(step), math.sin(step)
+        c = s = 0.0
+        for k in range(steps + 1):
+            if k % 16 == 0:
+                angle = a[j] + (b[j] - a[j]) * (k / steps)
+                c, s = math.cos(angle), math.sin(angle)
+            else:
+                c, s = c * c_step - s * s_step, s * c_step + c * s_step
+            trig[k, 0, j], trig[k, 1, j] = c, s
     q = np.empty(dof)
     diff = b - a
     # Visiting order of CollisionWorld.motion_valid: b, interior in bisection (breadth-first) order, a.
@@ -602,7 +626,7 @@ def _edge_suspects(a, b, resolution, first_only, out, queue, kin, scratch, spher
         t = k / steps
         for j in range(dof):
             q[j] = a[j] + diff[j] * t
-        if _state_suspect(q, kin, scratch, spheres, objects, grid_args, attached):
+        if _state_suspect(q, trig, k, kin, scratch, spheres, objects, grid_args, attached):
             out[count] = k
             count += 1
             if first_only:

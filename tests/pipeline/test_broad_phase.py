@@ -175,3 +175,20 @@ def test_clearance_lower_bound_and_min_clearance(panda: RobotModel,
     path = qs[:3]
     assert fast.path_clearance_m(path, 0.2) == slow.path_clearance_m(path, 0.2)
     assert SphereBroadPhase(panda).clearance_lower_bound_m(panda.home_position_rad) == np.inf  # empty world
+
+
+def test_edge_suspects_are_the_suspect_states_of_the_edge(panda: RobotModel,
+                                                          worlds: tuple[CollisionWorld, CollisionWorld]) -> None:
+    """The edge loop takes each state's joint cosines and sines by a rotation per step; its
+    suspects are exactly the states `state_suspect` flags, on edges of up to ~300 steps."""
+    broad = worlds[0]._broad_phase  # noqa: SLF001
+    rng = np.random.default_rng(16)
+    starts = _random_states(panda, 40, seed=17)
+    flagged = 0
+    for a in starts:
+        b = np.clip(a + rng.uniform(-3.0, 3.0, panda.dof), panda.lower_limits_rad, panda.upper_limits_rad)
+        suspects, steps = broad.edge_suspects(a, b, 0.01)
+        expected = {k for k in range(steps + 1) if broad.state_suspect(a + (b - a) * (k / steps))}
+        assert set(suspects.tolist()) == expected and len(suspects) == len(expected)
+        flagged += len(expected)
+    assert flagged > 0
