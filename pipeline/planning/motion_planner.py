@@ -367,7 +367,8 @@ class MotionPlanner:
                 return outcome
             # The segment passed the edge check but not the finer path check: search instead.
         while True:
-            remaining_s = deadline - time.perf_counter()
+            # At least a millisecond: the direct check or a failed path may have used the budget up.
+            remaining_s = max(deadline - time.perf_counter(), 1e-3)
             if problem.planner_id == "auto":
                 planner_id, result = self._auto(start, goals, remaining_s, rng)
             elif planner_id in PLANNER_CLASSES:
