@@ -28,7 +28,7 @@ import numba as nb
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from robonav.pipeline.kinematics_batch import LinkKinematics, forward_links, forward_links_trig
+from robonav.pipeline.kinematics_batch import LinkKinematics, forward_links, joint_trig
 from robonav.pipeline.link_geometry import grow_hull
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.scene import SceneObject
@@ -460,10 +460,7 @@ def _place_attached(link_rotation, link_translation, att_link, att_center_link, 
 
 @nb.njit(cache=True)
 def _one_state_suspect(q, kin, scratch, spheres, objects, grid_args, attached) -> bool:  # pragma: no cover (compiled)
-    trig = np.empty((1, 2, q.shape[0]))
-    for j in range(q.shape[0]):
-        trig[0, 0, j], trig[0, 1, j] = math.cos(q[j]), math.sin(q[j])
-    return _state_suspect(q, trig, 0, kin, scratch, spheres, objects, grid_args, attached)
+    return _state_suspect(q, joint_trig(q), 0, kin, scratch, spheres, objects, grid_args, attached)
 
 
 @nb.njit(cache=True, inline="always")
@@ -476,8 +473,8 @@ def _state_suspect(q, trig, row, kin, scratch, spheres, objects, grid_args,
     obj_kind, obj_rotation, obj_translation, obj_param, obj_bound = objects
     has_grid, grid, grid_origin, grid_voxel, grid_box, occupied = grid_args
     att_center_link, att_radius, att_radius_world, att_link, att_skip, att_world = attached
-    forward_links_trig(q, trig, row, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8], kin[9],
-                       kin[10], kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
+    forward_links(q, trig, row, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8], kin[9],
+                  kin[10], kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
     n_links = link_start.shape[0] - 1
     _place_spheres(link_rotation, link_translation, link_start, centers_link, bound_center_link, sphere_world,
                    bound_world_center)
@@ -553,8 +550,8 @@ def _clearance_lower_bound(q, kin, scratch, spheres, objects, grid_args, attache
     obj_kind, obj_rotation, obj_translation, obj_param, _ = objects
     has_grid, grid, grid_origin, grid_voxel, grid_box, _ = grid_args
     att_center_link, att_radius, _, att_link, _, att_world = attached
-    forward_links(q, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8], kin[9], kin[10],
-                  kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
+    forward_links(q, joint_trig(q), 0, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8],
+                  kin[9], kin[10], kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
     best = math.inf
     _place_spheres(link_rotation, link_translation, link_start, centers_link, bound_center_link, sphere_world,
                    bound_world_center)

@@ -193,46 +193,16 @@ def _compose(a_rotation: FloatArray, a_row: int, a_translation: FloatArray, b_ro
 
 
 @nb.njit(cache=True, nogil=True)
-def forward_links(
-    q: FloatArray,
-    parent: IntArray,
-    parent_from_joint_rotation: FloatArray,
-    parent_from_joint_translation_m: FloatArray,
-    joint_type: IntArray,
-    joint_axis: FloatArray,
-    q_slot: IntArray,
-    link_joint: IntArray,
-    joint_from_link_rotation: FloatArray,
-    joint_from_link_translation_m: FloatArray,
-    base_joint: int,
-    joint_from_base_rotation: FloatArray,
-    joint_from_base_translation_m: FloatArray,
-    root_from_joint_rotation: FloatArray,
-    root_from_joint_translation_m: FloatArray,
-    world_from_link_rotation: FloatArray,
-    world_from_link_translation_m: FloatArray,
-) -> None:
-    """Compiled forward kinematics: world_from_link of every collision link at `q`.
-
-    Args:
-        q: (dof,) configuration in `RobotModel.joint_names` order [rad or m].
-        parent ... joint_from_base_translation_m: `LinkKinematics.arrays()`.
-        root_from_joint_rotation: (J + 3, 3, 3) scratch, overwritten (three spare rows for temporaries).
-        root_from_joint_translation_m: (J + 3, 3) scratch, overwritten.
-        world_from_link_rotation: (L, 3, 3) output.
-        world_from_link_translation_m: (L, 3) output [m].
-    """
+def joint_trig(q: FloatArray) -> FloatArray:
+    """The (1, 2, dof) table `forward_links` reads for one state: cos(q) and sin(q)."""
     trig = np.empty((1, 2, q.shape[0]))
     for i in range(q.shape[0]):
         trig[0, 0, i], trig[0, 1, i] = np.cos(q[i]), np.sin(q[i])
-    forward_links_trig(q, trig, 0, parent, parent_from_joint_rotation, parent_from_joint_translation_m, joint_type,
-                       joint_axis, q_slot, link_joint, joint_from_link_rotation, joint_from_link_translation_m,
-                       base_joint, joint_from_base_rotation, joint_from_base_translation_m, root_from_joint_rotation,
-                       root_from_joint_translation_m, world_from_link_rotation, world_from_link_translation_m)
+    return trig
 
 
 @nb.njit(cache=True, nogil=True)
-def forward_links_trig(
+def forward_links(
     q: FloatArray,
     trig: FloatArray,
     row: int,
@@ -253,9 +223,22 @@ def forward_links_trig(
     world_from_link_rotation: FloatArray,
     world_from_link_translation_m: FloatArray,
 ) -> None:
-    """`forward_links` with the cosines and sines of `q` given: trig[row, 0] and trig[row, 1]
-    (each (dof,)). Along an edge they follow by a rotation per step instead of a sine and a
-    cosine per joint and state, a third of the kinematics' time (`broad_phase._edge_suspects`)."""
+    """Compiled forward kinematics: world_from_link of every collision link at `q`.
+
+    The joints' cosines and sines come in `trig` (`joint_trig(q)` for one state): along an edge
+    they follow by a rotation per step instead of a sine and a cosine per joint and state, which
+    were a third of the kinematics' time (`broad_phase._edge_suspects`).
+
+    Args:
+        q: (dof,) configuration in `RobotModel.joint_names` order [rad or m].
+        trig: (M, 2, dof) with trig[row, 0] = cos(q) and trig[row, 1] = sin(q).
+        row: The row of `trig` that belongs to `q`.
+        parent ... joint_from_base_translation_m: `LinkKinematics.arrays()`.
+        root_from_joint_rotation: (J + 3, 3, 3) scratch, overwritten (three spare rows for temporaries).
+        root_from_joint_translation_m: (J + 3, 3) scratch, overwritten.
+        world_from_link_rotation: (L, 3, 3) output.
+        world_from_link_translation_m: (L, 3) output [m].
+    """
     n_joints = parent.shape[0]
     # Spare scratch rows hold temporaries, so a call allocates nothing.
     motion, tmp, world = n_joints, n_joints + 1, n_joints + 2
@@ -317,10 +300,11 @@ def _poses_batch(qs, parent, parent_from_joint_rotation, parent_from_joint_trans
     link_rotation = np.zeros((n_links, 3, 3))
     link_translation = np.zeros((n_links, 3))
     for m in range(qs.shape[0]):
-        forward_links(qs[m], parent, parent_from_joint_rotation, parent_from_joint_translation_m, joint_type,
-                      joint_axis, q_slot, link_joint, joint_from_link_rotation, joint_from_link_translation_m,
-                      base_joint, joint_from_base_rotation, joint_from_base_translation_m, scratch_rotation,
-                      scratch_translation, link_rotation, link_translation)
+        forward_links(qs[m], joint_trig(qs[m]), 0, parent, parent_from_joint_rotation, parent_from_joint_translation_m,
+                      joint_type, joint_axis, q_slot, link_joint, joint_from_link_rotation,
+                      joint_from_link_translation_m, base_joint, joint_from_base_rotation,
+                      joint_from_base_translation_m, scratch_rotation, scratch_translation, link_rotation,
+                      link_translation)
         for link in range(n_links):
             for r in range(3):
                 for c in range(3):
