@@ -147,6 +147,11 @@ def test_perception_survives_bad_clouds(client: RobonavClient, session: zenoh.Se
     key = "robonav/arm0/camera/test/cloud"
     nan_points = np.full((100, 3), np.nan, dtype=np.float32)
     ones = {"dtype": "<f4", "shape": [1, 3], "data": np.ones(3, np.float32).tobytes()}
+    # Out of order: older than cam0's newest frame, yet newer than any perception/clear of an
+    # earlier test (a frame from before a clear is counted as before_clear instead).
+    fresh = time.time()
+    assert client.wait_for(lambda: client.occupancy is not None and client.occupancy.stamp > fresh, 10.0)
+    older = client.occupancy.stamp - 0.01
     # Built when sent: a frame is only integrated if it is newer than the camera's last one.
     bad_payloads = [
         lambda: b"\x00garbage",
@@ -158,7 +163,7 @@ def test_perception_survives_bad_clouds(client: RobonavClient, session: zenoh.Se
         lambda: msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "cam0",
                                "points": {"dtype": "<f4", "shape": [0, 3], "data": b""}}),
         lambda: msgpack.packb({"v": 1, "stamp": time.time(), "camera_id": "nobody", "points": ones}),
-        lambda: msgpack.packb({"v": 1, "stamp": time.time() - 60.0, "camera_id": "cam0", "points": ones}),
+        lambda: msgpack.packb({"v": 1, "stamp": older, "camera_id": "cam0", "points": ones}),
     ]
     before = _perception_status(session).dropped
     for payload in bad_payloads:
