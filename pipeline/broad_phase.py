@@ -7,10 +7,10 @@ FCL-free, so a cleared state needs no exact check; a suspect state must be asked
 
 Why hand-written numba instead of FCL for this: on MBM `box` problem 1 (Panda, 7 obstacles,
 random states) `CollisionWorld._check` costs ~80 us per state (Pinocchio FK from Python, numpy
-culling, one python-fcl call per near pair), while one compiled `state_suspect` call (FK, 101
-spheres vs the obstacles, the self pairs) costs ~8 us, most of it numba's unboxing of the ~30
-arguments; a whole 1 rad edge at 0.01 rad (101 states) is one call of ~0.6 ms against ~14 ms of
-FCL for a free edge. FCL stays the exact check for suspects.
+culling, one python-fcl call per near pair), while a state inside the compiled edge loop (FK,
+101 spheres vs the obstacles, the self pairs) costs ~1 us, and a call from Python ~4 us more to
+unbox its ~40 arrays; a whole 1 rad edge at 0.01 rad (101 states) is one call of ~0.1 ms
+against ~14 ms of FCL for a free edge. FCL stays the exact check for suspects.
 
 Robot-vs-world spheres are grown so they contain the PADDED hulls FCL uses: `grow_hull` pushes
 vertices out by up to ~1.8x the padding, so each shape's world radii grow by the Hausdorff

@@ -449,8 +449,9 @@ class MotionPlanner:
         # shortcut keeps pieces of checked segments unchecked, so when its path fails, the
         # search's own path (every segment checked) is the fallback.
         sphere_first, self._sphere_first = self._sphere_first, False
+        candidates = [path] if path is raw else [path, raw]
         try:
-            path = next((p for p in ((path,) if path is raw else (path, raw)) if self._revalidate(p, motion_valid)), None)
+            path = next((p for p in candidates if self._revalidate(p, motion_valid)), None)
         finally:
             self._sphere_first = sphere_first
         if path is None:
