@@ -68,6 +68,9 @@ class RobotModel:
             np.linalg.inv(self._data.oMf[self._base_id].homogeneous) if self._base_is_fixed else None
         )
         self._root_is_world = self._base_is_fixed and bool(np.allclose(self._world_from_root_fixed, np.eye(4)))
+        base_joint = model.frames[self._base_id].parentJoint
+        self._static_links = tuple(name for name, fid in self._frame_ids.items()
+                                   if model.frames[fid].parentJoint == base_joint)
         self._lower = np.array(model.lowerPositionLimit[q_index], dtype=np.float64)
         self._upper = np.array(model.upperPositionLimit[q_index], dtype=np.float64)
         for name, (lower, upper) in config.position_limits_rad.items():
@@ -153,6 +156,11 @@ class RobotModel:
     def collision_link_names(self) -> tuple[str, ...]:
         """Checked links with collision geometry, in URDF order."""
         return tuple(self._link_shapes)
+
+    @property
+    def static_link_names(self) -> tuple[str, ...]:
+        """Checked links rigidly attached to the base (e.g. panda_link0): no planning joint moves them."""
+        return self._static_links
 
     @property
     def link_collision_shapes(self) -> dict[str, list[LinkShape]]:

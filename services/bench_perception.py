@@ -36,7 +36,7 @@ from robonav.pipeline.perception.cloud_pipeline import process_cloud_with_cleari
 from robonav.pipeline.perception.depth import depth_from_points, points_from_depth
 from robonav.pipeline.perception.occupancy import OccupancyMap
 from robonav.pipeline.perception.projection_map import ProjectionOccupancyMap
-from robonav.pipeline.perception.self_filter import SelfFilter
+from robonav.pipeline.perception.self_filter import perception_filters
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.sim.noise import apply_depth_noise
 from robonav.pipeline.sim.world import SimWorld
@@ -87,8 +87,8 @@ def accuracy_run(cfg: RobonavConfig, frames_per_pose: int, seed: int) -> dict[st
     rng = np.random.default_rng((seed, 7))
     camera = cfg.cameras[0]
     robot = RobotModel.from_config(cfg.robot)
-    self_filter = SelfFilter(robot.link_hull_vertices, cfg.perception.self_filter_padding_m)
-    clear_filter = SelfFilter(robot.link_hull_vertices, cfg.perception.self_clear_padding_m)
+    self_filter, clear_filter = perception_filters(robot.link_hull_vertices, robot.static_link_names, cfg.perception,
+                                                   cfg.robot.padding_m)
     noise = dataclasses.replace(cfg.sim.noise, enabled=True)
     home = np.array(cfg.robot.home_position_rad)
     # Home, and the hand out over the table on either side of the pillar, between the camera
@@ -126,8 +126,8 @@ def core_run(cfg: RobonavConfig, frames: list, count: int, clearing: str) -> dic
     """Stage timings of the core for `count` frames with one clearing method."""
     pcfg = dataclasses.replace(cfg.perception, clearing=clearing)
     robot = RobotModel.from_config(cfg.robot)
-    self_filter = SelfFilter(robot.link_hull_vertices, pcfg.self_filter_padding_m)
-    clear_filter = SelfFilter(robot.link_hull_vertices, pcfg.self_clear_padding_m)
+    self_filter, clear_filter = perception_filters(robot.link_hull_vertices, robot.static_link_names, pcfg,
+                                                   cfg.robot.padding_m)
     camera = cfg.cameras[0]
     pose = camera.world_from_camera
     stages: dict[str, list[float]] = {}

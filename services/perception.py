@@ -33,7 +33,7 @@ from robonav.pipeline.perception.clusters import cluster_voxels
 from robonav.pipeline.perception.depth import depth_from_points
 from robonav.pipeline.perception.occupancy import OccupancyMap
 from robonav.pipeline.perception.projection_map import ProjectionOccupancyMap
-from robonav.pipeline.perception.self_filter import SelfFilter
+from robonav.pipeline.perception.self_filter import perception_filters
 from robonav.pipeline.robot import RobotModel
 from robonav.services.common import (
     Node,
@@ -104,8 +104,8 @@ class PerceptionNode(Node):
     def __init__(self, cfg: RobonavConfig, session: zenoh.Session) -> None:
         self.cfg = cfg
         self.robot = RobotModel.from_config(cfg.robot)
-        self.self_filter = SelfFilter(self.robot.link_hull_vertices, cfg.perception.self_filter_padding_m)
-        self.clear_filter = SelfFilter(self.robot.link_hull_vertices, cfg.perception.self_clear_padding_m)
+        self.self_filter, self.clear_filter = perception_filters(
+            self.robot.link_hull_vertices, self.robot.static_link_names, cfg.perception, cfg.robot.padding_m)
         self.map: ProjectionOccupancyMap | OccupancyMap = (
             ProjectionOccupancyMap(cfg.perception) if cfg.perception.clearing == "projection" else OccupancyMap(cfg.perception))
         self.history = JointHistory(self.robot.joint_names)

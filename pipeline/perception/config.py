@@ -25,7 +25,8 @@ class PerceptionConfig:
     every frame (the robot is there now; no ray can clear what its body hides) [m]. Kept below
     the planner's robot padding + inflation: a planned motion never comes this close to a
     mapped obstacle, so passing one does not erase it (as a larger radius would, leaving a
-    hole the next plan runs through)."""
+    hole the next plan runs through). Links no planning joint moves (the base) free more: as
+    far as the planner's padded check reaches from them (see `self_filter.perception_filters`)."""
     inflation_m: float = 0.02
     """Occupied voxels are dilated by this distance in the published map [m]."""
     fill_below_surfaces: bool = False
