@@ -91,6 +91,8 @@ class CollisionWorld:
         self._request = fcl.CollisionRequest()
         self._distance_request = fcl.DistanceRequest()
         self._octree: fcl.CollisionObject | None = None
+        self._seen_voxels_m: FloatArray | None = None
+        self._octree_resolution_m = 0.0
         self._object_names: list[str] = []
         self._object_fcl: list[fcl.CollisionObject] = []
         self._object_center = np.zeros((0, 3))
@@ -131,16 +133,24 @@ class CollisionWorld:
     def object_names(self) -> tuple[str, ...]:
         return tuple(self._object_names)
 
-    def set_octree(self, octomap_binary: bytes, resolution_m: float) -> None:
+    def set_octree(self, octomap_binary: bytes, resolution_m: float,
+                   seen_voxels_m: npt.ArrayLike | None = None) -> None:
         """Replace the occupancy map with an octree in the world frame.
 
         Args:
             octomap_binary: What `octomap.OcTree.writeBinary()` returns (header and data).
             resolution_m: Leaf size [m]; must match the `res` line of the header.
+            seen_voxels_m: (N, 3) centres of the voxels the sensors saw, when the octree is
+                those grown by an inflation (`Occupancy.occupied_centers_m`) [m]; None: unknown.
         """
         self._revision += 1
         if not (math.isfinite(resolution_m) and resolution_m > 0):
             raise ValueError(f"resolution_m must be finite and > 0, got {resolution_m}")
+        seen = None if seen_voxels_m is None else np.asarray(seen_voxels_m, dtype=np.float64)
+        if seen is not None and (seen.ndim != 2 or seen.shape[1] != 3 or not np.all(np.isfinite(seen))):
+            raise ValueError(f"seen_voxels_m must be a finite (N, 3) array, got shape {seen.shape}")
+        self._seen_voxels_m = seen
+        self._octree_resolution_m = float(resolution_m)
         marker = octomap_binary.find(b"data\n")
         if not octomap_binary.startswith(b"# Octomap OcTree binary file") or marker < 0:
             raise ValueError("octomap_binary is not an octomap binary file (missing header or 'data' line)")
@@ -162,9 +172,22 @@ class CollisionWorld:
         if self._broad_phase is not None:
             self._broad_phase.set_occupied_voxels(_occupied_leaf_centers(octomap_binary, resolution_m), resolution_m)
 
+    @property
+    def seen_voxels_m(self) -> FloatArray | None:
+        """(N, 3) centres of the map's voxels before inflation, side `octree_resolution_m` [m];
+        None when the map came without them (or there is no map)."""
+        return self._seen_voxels_m
+
+    @property
+    def octree_resolution_m(self) -> float:
+        """Leaf size of the current map [m]; 0 without one."""
+        return self._octree_resolution_m
+
     def clear_octree(self) -> None:
         self._revision += 1
         self._octree = None
+        self._seen_voxels_m = None
+        self._octree_resolution_m = 0.0
         if self._broad_phase is not None:
             self._broad_phase.clear_occupancy()
 

@@ -81,7 +81,7 @@ class PlannerNode(Node):
         with self._state_lock:
             pending, self._pending_map = self._pending_map, None
         if pending is not None:
-            self.world.set_octree(pending.octomap_binary, pending.resolution_m)
+            self.world.set_octree(pending.octomap_binary, pending.resolution_m, pending.occupied_centers_m)
             self._map_stamp = pending.stamp
 
     def _start_from_joint_state(self) -> np.ndarray:

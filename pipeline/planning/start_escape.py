@@ -8,10 +8,16 @@ within 2 % of each joint range, up to 100 samples), plans from the first valid o
 real start in front of the path, without checking that first segment.
 
 This does the same with one rule more, so that the way out is still collision-checked: only
-occupancy pairs may be in collision at the start, the bare (unpadded) links must not touch the
-map or any object there, and every state of the straight segment to the escape state must keep
-the bare links clear too. The arm then leaves the padding without ever reaching what the map
-says is occupied (the map is already inflated around what the cameras saw).
+occupancy pairs may be in collision at the start, and from the start through every state of the
+straight segment to the escape state the arm must keep off what the cameras saw. When the
+world knows the voxels the sensors saw before the map was inflated (`seen_voxels_m`), the
+padded links must not touch those; otherwise the bare (unpadded) links must not touch the
+inflated map. Objects always keep the bare links off them. The arm then leaves the padding and
+inflation without reaching anything observed.
+
+The seen voxels matter most after a guard stop: the arm brakes along its path into the margin
+around what just blocked it, and the bare hand often ends inside the inflation, though a
+padding away from every seen voxel. Judged on the inflated map, such starts stayed stuck.
 """
 
 from __future__ import annotations
@@ -41,24 +47,48 @@ def escape_start(world: CollisionWorld, start: FloatArray, is_valid: Callable[[F
         resolution_rad: Check spacing along the way out [rad].
 
     Returns:
-        (n,) escape state, or None when the start is not only inside the padding around the
-        map (it touches itself, an object or the map with bare links) or nothing near is free.
+        (n,) escape state, or None when the start is not only inside the margin around the map
+        (it touches itself or an object, or what the sensors saw; see the module docstring) or
+        nothing near is free.
     """
     if radius_rad <= 0 or samples <= 0:
         return None
     pairs = world.collisions(start)
-    if not pairs or any(other != OCCUPANCY for _, other in pairs) or world.collisions(start, padded=False):
+    if not pairs or any(other != OCCUPANCY for _, other in pairs):
         return None
     robot = world.robot
     low = np.maximum(start - radius_rad, robot.lower_limits_rad)
     high = np.minimum(start + radius_rad, robot.upper_limits_rad)
     candidates = rng.uniform(low, high, size=(samples, start.shape[0]))
+    touches = _touching_rule(world, np.vstack([start, candidates]))
+    if touches(start):
+        return None
     # Closest first: the smallest move out of the padding is the one least likely to meet anything.
     order = np.argsort(np.max(np.abs(candidates - start), axis=1), kind="stable")
     for q in candidates[order]:
         if not is_valid(q):
             continue
         way = interpolate_path(np.vstack([start, q]), resolution_rad)
-        if not any(world.collisions(s, padded=False) for s in way[1:-1]):
+        if not any(touches(s) for s in way[1:-1]):
             return q
     return None
+
+
+def _touching_rule(world: CollisionWorld, states: FloatArray) -> Callable[[FloatArray], bool]:
+    """Whether a state on the way out touches what it must not (see the module docstring)."""
+    seen = world.seen_voxels_m
+    if seen is None:
+        return lambda q: bool(world.collisions(q, padded=False))
+    # Only voxels near the arm anywhere on the way out can be touched: box the link origins of
+    # the start and every candidate, grown by the largest link and a margin for the small bulge
+    # of joint-space segments between them.
+    robot, voxel_m = world.robot, world.octree_resolution_m
+    origins = np.concatenate([poses[:, :3, 3] for poses in robot.link_poses_batch(states).values()])
+    reach_m = max(float(np.linalg.norm(v, axis=1).max()) for v in robot.link_hull_vertices.values())
+    reach_m += world.padding_m + voxel_m + 0.05
+    near = seen[np.all((seen >= origins.min(axis=0) - reach_m) & (seen <= origins.max(axis=0) + reach_m), axis=1)]
+
+    def touches(q: FloatArray) -> bool:
+        pairs = world.collisions(q, padded=False)
+        return any(other != OCCUPANCY for _, other in pairs) or world.touches_cubes(q, near, voxel_m)
+    return touches
