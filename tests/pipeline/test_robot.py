@@ -131,6 +131,14 @@ def test_adjacency_skips_geometry_less_links(panda: RobotModel) -> None:
     assert len(pairs) == 10
 
 
+def test_static_links_are_the_ones_no_joint_moves(panda: RobotModel) -> None:
+    assert panda.static_link_names == ("panda_link0",)
+    rng = np.random.default_rng(4)
+    poses = panda.link_poses_batch(rng.uniform(panda.lower_limits_rad, panda.upper_limits_rad, (5, panda.dof)))
+    for name, stack in poses.items():
+        assert np.allclose(stack, stack[0]) == (name in panda.static_link_names), name
+
+
 def test_config_errors() -> None:
     with pytest.raises(ValueError, match="robot.urdf"):
         RobotModel.from_config(RobotConfig(urdf="/nonexistent/robot.urdf"))

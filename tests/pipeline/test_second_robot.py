@@ -41,6 +41,10 @@ def test_config_loads_the_iiwa(iiwa_config: RobonavConfig, iiwa: RobotModel) -> 
     assert not world.in_collision(iiwa.home_position_rad)
 
 
+def test_the_base_is_its_only_static_link(iiwa: RobotModel) -> None:
+    assert iiwa.static_link_names == ("lbr_iiwa_link_0",)
+
+
 def test_allowed_pairs_are_the_generated_matrix(iiwa_config: RobonavConfig, iiwa: RobotModel) -> None:
     """The config's pairs are what `generate_acm` gives with the seed and sample count it names."""
     acm = generate_acm(CollisionWorld(iiwa), rng=np.random.default_rng(0), n_samples=10000)

@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from robonav.pipeline.perception.self_filter import SelfFilter
+from robonav.pipeline.perception.config import PerceptionConfig
+from robonav.pipeline.perception.self_filter import SelfFilter, perception_filters
 from robonav.pipeline.transforms import make_transform
 
 UNIT_CUBE = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)])
@@ -95,6 +96,36 @@ def test_flat_link_is_joggled_and_padded() -> None:
     sf = SelfFilter({"plate": plate}, padding_m=0.02)
     points = np.array([[0.5, 0.5, 0.01], [0.5, 0.5, -0.01], [0.5, 0.5, 0.1]])
     np.testing.assert_array_equal(sf.outside_mask(points, {"plate": np.eye(4)}), [False, False, True])
+
+
+def test_a_link_can_have_its_own_padding() -> None:
+    points = np.array([[1.05, 0.5, 0.5], [3.05, 0.5, 0.5]])
+    poses = {"a": np.eye(4), "b": make_transform([2.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])}
+    sf = SelfFilter({"a": UNIT_CUBE, "b": UNIT_CUBE}, padding_m=0.0, link_padding_m={"b": 0.1})
+    np.testing.assert_array_equal(sf.outside_mask(points, poses), [True, False])
+    with pytest.raises(ValueError, match="without a hull"):
+        SelfFilter({"a": UNIT_CUBE}, padding_m=0.0, link_padding_m={"c": 0.1})
+    with pytest.raises(ValueError, match="padding of a"):
+        SelfFilter({"a": UNIT_CUBE}, padding_m=0.0, link_padding_m={"a": float("nan")})
+
+
+def test_the_base_is_filtered_as_far_as_the_planner_checks(panda) -> None:  # noqa: ANN001 - session fixture
+    config = PerceptionConfig(resolution_m=0.02, inflation_m=0.02, self_filter_padding_m=0.04,
+                              self_clear_padding_m=0.02)
+    self_filter, clear_filter = perception_filters(panda.link_hull_vertices, panda.static_link_names, config,
+                                                   robot_padding_m=0.01)
+    q = panda.home_position_rad
+    poses = panda.link_poses(q)
+    # Points straight out from the base's and the hand's hull, beyond the moving links' paddings
+    # but within the planner's reach (padding + inflated voxel half diagonal = 0.062 m).
+    base_hull = panda.link_hull_vertices["panda_link0"]
+    base_side = np.array([base_hull[:, 0].max() + 0.05, 0.0, 0.05])
+    hand_hull = panda.link_hull_vertices["panda_hand"]
+    hand_side = poses["panda_hand"] @ np.array([0.0, hand_hull[:, 1].max() + 0.05, 0.0, 1.0])
+    points = np.vstack([base_side, hand_side[:3]])
+    for sf in (self_filter, clear_filter):
+        outside = sf.outside_mask(points, poses)
+        assert not outside[0] and outside[1]
 
 
 def test_empty_cloud() -> None:

@@ -108,3 +108,62 @@ def test_config_rejects_negative_escape_settings() -> None:
         PlannerConfig(start_escape_rad=-0.1)
     with pytest.raises(ValueError, match="start_escape_samples"):
         dataclasses.replace(PlannerConfig(), start_escape_samples=-1)
+
+
+def _voxel_box(low_m: np.ndarray, high_m: np.ndarray) -> np.ndarray:
+    """Centres of the VOXEL_M grid cells whose centres lie in [low_m, high_m]."""
+    axes = [np.arange(np.ceil(lo / VOXEL_M - 0.5), np.floor(hi / VOXEL_M - 0.5) + 1) * VOXEL_M + VOXEL_M / 2
+            for lo, hi in zip(low_m, high_m)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def _octree(centres_m: np.ndarray) -> bytes:
+    tree = octomap.OcTree(VOXEL_M)
+    for centre in centres_m:
+        tree.updateNode(centre, True)
+    return tree.writeBinary()
+
+
+def test_a_hand_inside_the_inflation_but_a_padding_off_what_was_seen_escapes(panda, start) -> None:
+    """After a guard stop the bare hand rests inside the inflated map, a padding away from the
+    seen voxels: with those known it leaves; judged on the inflated map alone it stays stuck."""
+    padding_m, inflation_m = 0.01, 2 * VOXEL_M
+    hand = panda.frame_pose(start, "panda_hand")[:3, 3]
+    lowest = min(panda.frame_pose(start, link)[2, 3] for link in ("panda_leftfinger", "panda_rightfinger"))
+    goal = start.copy()
+    goal[0] = 1.0
+    for top in np.arange(lowest, lowest - 0.2, -VOXEL_M / 4):
+        seen = _voxel_box(hand - [0.06, 0.06, 0.0] + [0, 0, top - hand[2] - 2 * VOXEL_M],
+                          hand + [0.06, 0.06, 0.0] + [0, 0, top - hand[2]])
+        grown = _voxel_box(seen.min(axis=0) - inflation_m, seen.max(axis=0) + inflation_m)
+        world = CollisionWorld(panda, padding_m=padding_m)
+        world.set_octree(_octree(grown), VOXEL_M, seen)
+        if world.collisions(start, padded=False) and not world.touches_cubes(start, seen, VOXEL_M):
+            break
+    else:
+        raise AssertionError("no slab height puts the bare hand in the inflation only")
+    outcome = _planner(panda, world).plan(PlanProblem(start, goal, allowed_planning_time_s=5.0, seed=2))
+    assert outcome.status is PlanStatus.SUCCESS, outcome.detail
+    path = outcome.path
+    np.testing.assert_array_equal(path[0], start)
+    assert not any(world.touches_cubes(q, seen, VOXEL_M) for q in interpolate_path(path[:2], RESOLUTION_RAD / 4))
+    assert world.path_valid(path[1:], RESOLUTION_RAD)
+
+    unknown = CollisionWorld(panda, padding_m=padding_m)
+    unknown.set_octree(_octree(grown), VOXEL_M)
+    assert unknown.seen_voxels_m is None
+    stuck = _planner(panda, unknown).plan(PlanProblem(start, goal, allowed_planning_time_s=5.0, seed=2))
+    assert stuck.status is PlanStatus.START_INVALID and "occupancy" in stuck.detail
+
+
+def test_seen_voxels_must_be_finite_triples(panda) -> None:
+    world = CollisionWorld(panda, padding_m=0.01)
+    binary = _octree(np.array([[1.0, 1.0, 1.0]]))
+    with pytest.raises(ValueError, match="seen_voxels_m"):
+        world.set_octree(binary, VOXEL_M, np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="seen_voxels_m"):
+        world.set_octree(binary, VOXEL_M, np.array([[np.nan, 0.0, 0.0]]))
+    world.set_octree(binary, VOXEL_M, np.array([[1.01, 1.01, 1.01]]))
+    assert world.seen_voxels_m.shape == (1, 3) and world.octree_resolution_m == VOXEL_M
+    world.clear_octree()
+    assert world.seen_voxels_m is None and world.octree_resolution_m == 0.0
