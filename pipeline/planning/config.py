@@ -34,9 +34,9 @@ class PlannerConfig:
     """Within this joint-space distance of the start or a goal, the sphere-first search still asks
     FCL about states the spheres flag [rad]."""
     start_escape_rad: float = 0.1
-    """A start inside the padding around the occupancy map (bare links clear) may be left through
-    states that keep the bare links clear, to a valid state within this distance in every joint
-    [rad] (MoveIt's FixStartStateCollision; see `start_escape`). 0: such a start is START_IN_COLLISION."""
+    """A start inside the padding around the occupancy map may be left through states that keep
+    off what the cameras saw, to a valid state within this distance in every joint [rad]
+    (MoveIt's FixStartStateCollision; see `start_escape`). 0: such a start is START_IN_COLLISION."""
     start_escape_samples: int = 100
     """Candidate states drawn around such a start (MoveIt's max_sampling_attempts)."""
     seed: int = 0
