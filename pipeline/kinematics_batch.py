@@ -227,7 +227,7 @@ def forward_links(
 
     The joints' cosines and sines come in `trig` (`joint_trig(q)` for one state): along an edge
     they follow by a rotation per step instead of a sine and a cosine per joint and state, which
-    were a third of the kinematics' time (`broad_phase._edge_suspects`).
+    were a third of the kinematics' time (`broad_phase_kernels.edge_suspect_steps`).
 
     Args:
         q: (dof,) configuration in `RobotModel.joint_names` order [rad or m].
