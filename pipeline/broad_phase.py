@@ -30,6 +30,7 @@ from scipy.ndimage import distance_transform_edt
 from robonav.pipeline.broad_phase_kernels import (
     BOX,
     CAPSULE,
+    CONTACT_EPS_M,
     CYLINDER,
     SPHERE,
     clearance_lower_bound,
@@ -294,7 +295,7 @@ class SphereBroadPhase:
             a = slice(self._link_start[la], self._link_start[la + 1])
             b = slice(self._link_start[lb], self._link_start[lb + 1])
             gap = np.linalg.norm(world[a, None, :] - world[None, b, :], axis=2)
-            if np.any(gap <= self._radii_self[a, None] + self._radii_self[None, b] + _CONTACT_EPS_M):
+            if np.any(gap <= self._radii_self[a, None] + self._radii_self[None, b] + CONTACT_EPS_M):
                 return True
         return False
 

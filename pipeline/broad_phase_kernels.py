@@ -15,7 +15,7 @@ import numpy as np
 from robonav.pipeline.kinematics_batch import forward_links, joint_trig
 
 BOX, SPHERE, CYLINDER, CAPSULE = 0, 1, 2, 3
-_CONTACT_EPS_M = 1e-9
+CONTACT_EPS_M = 1e-9
 """Touching counts as contact (FCL reports touching shapes as colliding)."""
 
 
@@ -100,7 +100,7 @@ def _rows_within(points_a, i: int, points_b, j: int, reach: float) -> bool:
     dx = points_a[i, 0] - points_b[j, 0]
     dy = points_a[i, 1] - points_b[j, 1]
     dz = points_a[i, 2] - points_b[j, 2]
-    r = reach + _CONTACT_EPS_M
+    r = reach + CONTACT_EPS_M
     return dx * dx + dy * dy + dz * dz <= r * r
 
 
@@ -170,15 +170,15 @@ def _state_suspect(q, trig, row, kin, scratch, spheres, objects, grid_args,
             for s in range(link_start[li], link_start[li + 1]):
                 d = _object_distance(sphere_world[s, 0], sphere_world[s, 1], sphere_world[s, 2], k, obj_kind,
                                      obj_rotation, obj_translation, obj_param)
-                if d <= radii_world[s] + _CONTACT_EPS_M:
+                if d <= radii_world[s] + CONTACT_EPS_M:
                     return True
         if has_grid:
             if _voxel_distance(bx, by, bz, grid, grid_origin, grid_voxel, grid_box) <= bound_world[li]:
                 for s in range(link_start[li], link_start[li + 1]):
                     d = _voxel_distance(sphere_world[s, 0], sphere_world[s, 1], sphere_world[s, 2], grid, grid_origin,
                                         grid_voxel, grid_box)
-                    if d <= radii_world[s] + _CONTACT_EPS_M and _touches_voxels(
-                            sphere_world[s, 0], sphere_world[s, 1], sphere_world[s, 2], radii_world[s] + _CONTACT_EPS_M,
+                    if d <= radii_world[s] + CONTACT_EPS_M and _touches_voxels(
+                            sphere_world[s, 0], sphere_world[s, 1], sphere_world[s, 2], radii_world[s] + CONTACT_EPS_M,
                             occupied, grid_origin, grid_voxel):
                         return True
     # Self-collision, unpadded.
@@ -200,22 +200,22 @@ def _state_suspect(q, trig, row, kin, scratch, spheres, objects, grid_args,
         x, y, z = att_world[a, 0], att_world[a, 1], att_world[a, 2]
         for k in range(n_objects):
             if _object_distance(x, y, z, k, obj_kind, obj_rotation, obj_translation, obj_param) <= (
-                    att_radius_world[a] + _CONTACT_EPS_M):
+                    att_radius_world[a] + CONTACT_EPS_M):
                 return True
         if has_grid and _voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= (
-                att_radius_world[a] + _CONTACT_EPS_M) and _touches_voxels(
-                    x, y, z, att_radius_world[a] + _CONTACT_EPS_M, occupied, grid_origin, grid_voxel):
+                att_radius_world[a] + CONTACT_EPS_M) and _touches_voxels(
+                    x, y, z, att_radius_world[a] + CONTACT_EPS_M, occupied, grid_origin, grid_voxel):
             return True
         for lo in range(n_links):
             if att_skip[a, lo]:
                 continue
             dx, dy, dz = x - bound_world_center[lo, 0], y - bound_world_center[lo, 1], z - bound_world_center[lo, 2]
-            reach = att_radius[a] + bound_self[lo] + _CONTACT_EPS_M
+            reach = att_radius[a] + bound_self[lo] + CONTACT_EPS_M
             if dx * dx + dy * dy + dz * dz > reach * reach:
                 continue
             for s in range(link_start[lo], link_start[lo + 1]):
                 dx, dy, dz = x - sphere_world[s, 0], y - sphere_world[s, 1], z - sphere_world[s, 2]
-                reach = att_radius[a] + radii_self[s] + _CONTACT_EPS_M
+                reach = att_radius[a] + radii_self[s] + CONTACT_EPS_M
                 if dx * dx + dy * dy + dz * dz <= reach * reach:
                     return True
     return False
