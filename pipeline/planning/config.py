@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -30,12 +29,7 @@ class PlannerConfig:
     shortcut_patience: int = 10
     """Stop shortcutting after this many attempts in a row that shortened nothing (0: never)."""
     sphere_first_share: float = 0.5
-    """Share of the budget for the sphere-first search (0: exact search only; 1: sphere-first only)
-    when it is not raced (see `exact_race_after_s`)."""
-    exact_race_after_s: float = 0.1
-    """After this long alone, the sphere-first search is raced by the exact search, each in a
-    forked process, for the rest of the budget [s]; 0 (or no fork): `sphere_first_share` splits
-    the budget between them instead, one after the other. A share of 0 or 1 never races."""
+    """Share of the budget for the sphere-first search (0: exact search only; 1: sphere-first only)."""
     sphere_first_exact_radius_rad: float = 0.5
     """Within this joint-space distance of the start or a goal, the sphere-first search still asks
     FCL about states the spheres flag [rad]."""
@@ -72,8 +66,6 @@ class PlannerConfig:
         require(self.shortcut_patience >= 0, f"planner.shortcut_patience must be >= 0, got {self.shortcut_patience}")
         require(0 <= self.sphere_first_share <= 1,
                 f"planner.sphere_first_share must be in [0, 1], got {self.sphere_first_share}")
-        require(math.isfinite(self.exact_race_after_s) and self.exact_race_after_s >= 0,
-                f"planner.exact_race_after_s must be finite and >= 0, got {self.exact_race_after_s}")
         require(self.sphere_first_exact_radius_rad >= 0,
                 f"planner.sphere_first_exact_radius_rad must be >= 0, got {self.sphere_first_exact_radius_rad}")
         require(self.start_escape_rad >= 0, f"planner.start_escape_rad must be >= 0, got {self.start_escape_rad}")

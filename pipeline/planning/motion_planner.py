@@ -22,15 +22,7 @@ from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.planning.ik import IkStatus, solve_ik
 from robonav.pipeline.planning.lattice import plan_lattice
 from robonav.pipeline.planning.metrics import interpolate_path, max_joint_step_rad, path_length_rad
-from robonav.pipeline.planning.ompl_planners import (
-    PLANNER_CLASSES,
-    ROADMAP,
-    JointSpaceProblem,
-    OmplSpace,
-    can_fork,
-    race,
-    race_calls,
-)
+from robonav.pipeline.planning.ompl_planners import PLANNER_CLASSES, JointSpaceProblem, OmplSpace, race
 from robonav.pipeline.planning.potential_field import PotentialFieldConfig, plan_potential_field
 from robonav.pipeline.planning.result import PlanResult, PlanStatus
 from robonav.pipeline.planning.shortcut import shortcut_path
@@ -332,17 +324,10 @@ class MotionPlanner:
         often begin and end in tight spots. That makes a tree edge one compiled call instead of
         tens of FCL calls, at the price of the narrow passages the spheres over-cover (about
         1.5 cm per link). Every path found this way is FCL-free; it is re-validated regardless.
-        When that search fails, the rest of the budget goes to the exact search: raced against a
-        fresh sphere-first search after `exact_race_after_s` (see `_race_modes`), or after
-        `sphere_first_share` of the budget where there is no racing.
+        When that search fails, the rest of the budget goes to the exact search.
         """
         t0 = time.perf_counter()
         share = self.config.sphere_first_share
-        race_after_s = self.config.exact_race_after_s
-        racing = (race_after_s > 0 and 0 < share < 1 and budget_s > race_after_s and can_fork()
-                  and problem.planner_id in PLANNER_CLASSES and problem.planner_id not in ROADMAP)
-        if racing:
-            share = race_after_s / budget_s
         # Not against an occupancy map: on MotionBenchMaker clouds (--scene cloud, no inflation,
         # 56 problems) sphere-first solved 55 % against the exact search's 62 % when voxels were
         # only a distance field, and about as many (54 % against 52 %, a noisy run) with exact
@@ -361,17 +346,6 @@ class MotionPlanner:
             spent_s = time.perf_counter() - t0
             if budget_s - spent_s <= 0:
                 return outcome
-            if racing and is_valid is self._is_valid:
-                try:
-                    raced = self._search(problem, start, goals, is_valid, motion_valid, budget_s - spent_s, rng,
-                                         race=True)
-                finally:
-                    self._sphere_first = False
-                detail = raced.detail if raced.status is PlanStatus.SUCCESS else (
-                    f"{raced.detail} (after {spent_s:.3f} s of sphere-first search)")
-                # Before racing, the exact check tries the straight segment (no "race" then).
-                return dataclasses.replace(raced, detail=detail,
-                                           details={"search": "exact", **raced.details})
             exact = self._search(problem, start, goals, is_valid, motion_valid, budget_s - spent_s, rng)
             detail = exact.detail if exact.status is PlanStatus.SUCCESS else (
                 f"{exact.detail} (after {spent_s:.3f} s of sphere-first search)")
@@ -380,11 +354,8 @@ class MotionPlanner:
         return dataclasses.replace(outcome, details={**outcome.details, "search": "exact"})
 
     def _search(self, problem: PlanProblem, start: FloatArray, goals: FloatArray, is_valid, motion_valid,  # noqa: ANN001
-                budget_s: float, rng: np.random.Generator, *, race: bool = False) -> PlanOutcome:
-        """Search with `problem.planner_id`, simplify and re-validate. With `race`, the OMPL
-        search is a race of the sphere-first and the exact check (`_race_modes`)."""
+                budget_s: float, rng: np.random.Generator) -> PlanOutcome:
         t0 = time.perf_counter()
-        search = "race"
         deadline = t0 + budget_s
         planner_id = problem.planner_id
         direct = next((k for k, g in enumerate(goals) if motion_valid(start, g)), None)
@@ -401,9 +372,7 @@ class MotionPlanner:
             if problem.planner_id == "auto":
                 planner_id, result = self._auto(start, goals, remaining_s, rng)
             elif planner_id in PLANNER_CLASSES:
-                if race:
-                    search, result = self._race_modes(planner_id, start, goals, remaining_s)
-                elif is_valid is self._is_valid:
+                if is_valid is self._is_valid:
                     result = self._space.solve(planner_id, start, goals, time_limit_s=remaining_s)
                 else:  # workspace bounds: a roadmap checked without them cannot be reused
                     space = OmplSpace(JointSpaceProblem(self.robot.lower_limits_rad, self.robot.upper_limits_rad,
@@ -416,32 +385,11 @@ class MotionPlanner:
                 return PlanOutcome(result.status, result.detail, planner_id=planner_id,
                                    planning_time_s=time.perf_counter() - t0)
             outcome = self._finish(problem, result.path, goals, motion_valid, planner_id, time.perf_counter() - t0, rng)
-            if race:
-                outcome = dataclasses.replace(outcome, details={**outcome.details, "search": search})
             # A sampled path that fails the finer re-check is drawn again while time is left (the
             # deterministic baselines would only find the same path).
             if (outcome.status is PlanStatus.SUCCESS or planner_id in BASELINES
                     or time.perf_counter() >= deadline):
                 return outcome
-
-    def _race_modes(self, planner_id: str, start: FloatArray, goals: FloatArray, budget_s: float) -> tuple[str, PlanResult]:
-        """A fresh sphere-first search and the exact search, side by side in forked processes.
-
-        On MotionBenchMaker each wins where the other struggles (CPU ms to solve, 4 seeds):
-        bookshelf_tall #25 exact 5, sphere-first never (the spheres close its passage);
-        bookshelf_small #40 exact 18-88, sphere-first never; bookshelf_tall #2 sphere-first
-        140-640, exact mostly not within 3 s. One after the other, each got half the budget.
-        Leaves the winner's mode set, so the path is simplified under the check that found it.
-        """
-        def solve_in(sphere_first: bool):  # noqa: ANN202 - a call for the race
-            def solve() -> PlanResult:
-                self._sphere_first = sphere_first
-                return self._space.solve(planner_id, start, goals, time_limit_s=budget_s)
-            return solve
-        winner, result = race_calls([("sphere_first", solve_in(True)), ("exact", solve_in(False))],
-                                    time_limit_s=budget_s)
-        self._sphere_first = winner == "sphere_first"
-        return f"race:{winner}", result
 
     def _baseline(self, planner_id: str, start: FloatArray, goals: FloatArray, is_valid, motion_valid,  # noqa: ANN001
                   budget_s: float, rng: np.random.Generator) -> PlanResult:

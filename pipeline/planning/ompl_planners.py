@@ -238,11 +238,6 @@ class OmplSpace:
         return PlanResult(PlanStatus.SUCCESS, path, f"{planner_id}: {path.shape[0]} waypoints", elapsed)
 
 
-def can_fork() -> bool:
-    """Whether `race_calls` runs its calls side by side (forked processes) on this platform."""
-    return "fork" in multiprocessing.get_all_start_methods()
-
-
 def race(
     space: OmplSpace,
     planner_ids: Sequence[str],
@@ -252,7 +247,13 @@ def race(
     time_limit_s: float,
 ) -> tuple[str, PlanResult]:
     """Run several planners at once on the same query, one forked process each; the first
-    exact solution wins and the other processes are killed (see `race_calls`).
+    exact solution wins and the other processes are killed.
+
+    Processes, not threads: OMPL's Python bindings hold the GIL for the whole `solve`, so
+    threads would take turns rather than run side by side (and a second thread starting
+    while the first is inside `solve` was seen to deadlock). A forked child shares the
+    parent's collision world copy-on-write and costs a few milliseconds to start. Where
+    `fork` is unavailable the planners run one after another.
 
     Returns:
         The winning planner id and its result; when every planner failed, the first id and
@@ -260,48 +261,22 @@ def race(
     """
     if not planner_ids:
         raise ValueError("race needs at least one planner_id")
-    return race_calls([(planner_id, _solver(space, planner_id, start_rad, goals_rad, time_limit_s))
-                       for planner_id in planner_ids], time_limit_s=time_limit_s)
-
-
-def _solver(space: OmplSpace, planner_id: str, start_rad: FloatArray, goals_rad: FloatArray,
-            time_limit_s: float) -> Callable[[], PlanResult]:
-    return lambda: space.solve(planner_id, start_rad, goals_rad, time_limit_s=time_limit_s)
-
-
-def race_calls(calls: Sequence[tuple[str, Callable[[], PlanResult]]], *, time_limit_s: float) -> tuple[str, PlanResult]:
-    """Run labelled searches at once, one forked process each; the first success wins and the
-    other processes are killed. Each call should stop by itself within `time_limit_s`.
-
-    Processes, not threads: OMPL's Python bindings hold the GIL for the whole `solve`, so
-    threads would take turns rather than run side by side (and a second thread starting
-    while the first is inside `solve` was seen to deadlock). A forked child shares the
-    parent's collision world copy-on-write and costs a few milliseconds to start; what a
-    call changes in its process (a grown roadmap) is lost with it. Where `fork` is
-    unavailable the calls run one after another.
-
-    Returns:
-        The winning label and its result; when every call failed, the first label and a
-        TIMEOUT result naming each failure.
-    """
-    if not calls:
-        raise ValueError("race_calls needs at least one call")
     t0 = time.perf_counter()
-    labels = [label for label, _ in calls]
-    if not can_fork():
-        for label, call in calls:
-            result = call()
+    if "fork" not in multiprocessing.get_all_start_methods():
+        for planner_id in planner_ids:
+            result = space.solve(planner_id, start_rad, goals_rad, time_limit_s=time_limit_s)
             if result.success:
-                return label, result
-        return labels[0], PlanResult(PlanStatus.TIMEOUT, None, "race: nothing solved it", time.perf_counter() - t0)
+                return planner_id, result
+        return planner_ids[0], PlanResult(PlanStatus.TIMEOUT, None, "race: no planner solved it", time.perf_counter() - t0)
     context = multiprocessing.get_context("fork")
     children: dict[Any, tuple[str, Any]] = {}
-    for label, call in calls:
+    for planner_id in planner_ids:
         receiver, sender = context.Pipe(duplex=False)
-        process = context.Process(target=_race_child, args=(label, call, sender), daemon=True, name=f"plan-{label}")
+        process = context.Process(target=_race_child, args=(space, planner_id, start_rad, goals_rad, time_limit_s, sender),
+                                  daemon=True, name=f"plan-{planner_id}")
         process.start()
         sender.close()
-        children[receiver] = (label, process)
+        children[receiver] = (planner_id, process)
     results: dict[str, PlanResult] = {}
     winner: str | None = None
     deadline = time.monotonic() + time_limit_s + 5.0  # a child that hangs past its budget is abandoned
@@ -312,14 +287,14 @@ def race_calls(calls: Sequence[tuple[str, Callable[[], PlanResult]]], *, time_li
             break
         for receiver in ready:
             pending.discard(receiver)
-            label = children[receiver][0]
+            planner_id = children[receiver][0]
             try:
                 status, path, detail = receiver.recv()
             except (EOFError, OSError):
-                status, path, detail = PlanStatus.TIMEOUT.value, None, f"{label}: the planning process died"
-            results[label] = PlanResult(PlanStatus(status), path, detail, time.perf_counter() - t0)
-            if results[label].success and winner is None:
-                winner = label
+                status, path, detail = PlanStatus.TIMEOUT.value, None, f"{planner_id}: the planning process died"
+            results[planner_id] = PlanResult(PlanStatus(status), path, detail, time.perf_counter() - t0)
+            if results[planner_id].success and winner is None:
+                winner = planner_id
     for receiver, (_, process) in children.items():
         if process.is_alive():
             process.kill()
@@ -329,17 +304,18 @@ def race_calls(calls: Sequence[tuple[str, Callable[[], PlanResult]]], *, time_li
     if winner is not None:
         result = results[winner]
         return winner, PlanResult(result.status, result.path, result.detail, elapsed)
-    first = results.get(labels[0])
-    detail = "; ".join(r.detail for r in results.values()) or "race: nothing answered"
-    return labels[0], PlanResult(first.status if first else PlanStatus.TIMEOUT, None, detail, elapsed)
+    first = results.get(planner_ids[0])
+    detail = "; ".join(r.detail for r in results.values()) or "race: no planner answered"
+    return planner_ids[0], PlanResult(first.status if first else PlanStatus.TIMEOUT, None, detail, elapsed)
 
 
-def _race_child(label: str, call: Callable[[], PlanResult], sender: Any) -> None:
+def _race_child(space: OmplSpace, planner_id: str, start_rad: FloatArray, goals_rad: FloatArray,
+                time_limit_s: float, sender: Any) -> None:
     try:
-        result = call()
+        result = space.solve(planner_id, start_rad, goals_rad, time_limit_s=time_limit_s)
         sender.send((result.status.value, result.path, result.detail))
-    except Exception as exc:  # reported to the parent as this call's failure
-        sender.send((PlanStatus.TIMEOUT.value, None, f"{label}: {type(exc).__name__}: {exc}"))
+    except Exception as exc:  # reported to the parent as this planner's failure
+        sender.send((PlanStatus.TIMEOUT.value, None, f"{planner_id}: {type(exc).__name__}: {exc}"))
     finally:
         sender.close()
 

@@ -1,10 +1,8 @@
-"""`mbm-primitives/1` parsing on the real MotionBenchMaker files, the MBM Panda model, malformed documents,
-and a problem only the exact search solves."""
+"""`mbm-primitives/1` parsing on the real MotionBenchMaker files, the MBM Panda model, malformed documents."""
 
 from __future__ import annotations
 
 import copy
-import dataclasses
 import json
 import os
 from pathlib import Path
@@ -13,13 +11,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.mesh_check import MeshCollisionChecker
-from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.planning.mbm import MBM_PANDA_POSITION_LIMITS_RAD, MbmProblemSet, mbm_robot_config, parse_mbm
-from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
-from robonav.pipeline.planning.ompl_planners import seed_ompl_once
-from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot import RobotModel
 
 MBM_DIR = Path(os.environ.get("ROBONAV_MBM_DIR") or Path(__file__).resolve().parents[4] / "shared" / "benchmarks" / "mbm")
@@ -145,28 +138,3 @@ def test_the_unedited_cut_document_parses(documents: dict[str, dict[str, Any]]) 
 def test_a_non_object_document_is_rejected() -> None:
     with pytest.raises(ValueError, match="expected a JSON object, got list"):
         parse_mbm([])  # type: ignore[arg-type]
-
-
-def test_the_exact_search_races_sphere_first_where_spheres_close_the_passage(
-        problem_sets: dict[str, MbmProblemSet]) -> None:
-    """bookshelf_small #40: the covering spheres close the way to its goal, so only the exact
-    search finds one; raced after 50 ms, it wins."""
-    problem_set = problem_sets["bookshelf_small"]
-    robot = RobotModel.from_config(mbm_robot_config(problem_set))
-    problem = next(p for p in problem_set.problems if p.index == 40)
-    world = CollisionWorld(robot, padding_m=0.0)
-    world.set_objects(problem.obstacles)
-    goal = np.array(problem.goals_rad[0])
-    config = PlannerConfig(range_rad=1.0, edge_resolution_rad=0.02, exact_race_after_s=0.05)
-    seed_ompl_once(0)
-    spheres_only = MotionPlanner(robot, world, dataclasses.replace(config, sphere_first_share=1.0, exact_race_after_s=0.0))
-    assert spheres_only.plan(PlanProblem(problem.start, goal, allowed_planning_time_s=0.3, seed=1)).status \
-        is PlanStatus.TIMEOUT
-    outcome = MotionPlanner(robot, world, config).plan(PlanProblem(problem.start, goal, allowed_planning_time_s=5.0,
-                                                                   seed=1))
-    assert outcome.status is PlanStatus.SUCCESS, outcome.detail
-    assert outcome.details["search"] == "race:exact"
-    assert not world.motion_valid(problem.start, goal, 0.02)  # not the straight segment
-    np.testing.assert_array_equal(outcome.path[0], problem.start)
-    np.testing.assert_array_equal(outcome.path[-1], goal)
-    assert world.path_valid(outcome.path, 0.02)

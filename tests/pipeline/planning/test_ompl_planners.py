@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
 from robonav.pipeline.collision import CollisionWorld
 from robonav.pipeline.planning.metrics import path_length_rad
 from robonav.pipeline.planning.ompl_planners import (PLANNER_CLASSES, JointSpaceProblem, OmplSpace, plan_ompl, race,
-                                                     race_calls, seed_ompl_once)
-from robonav.pipeline.planning.result import PlanResult, PlanStatus
+                                                       seed_ompl_once)
+from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.scene import SceneObject
 
@@ -149,18 +147,3 @@ def test_race_returns_a_winner_and_stops_the_others(make_point_robot) -> None:
     assert result.success and winner in ("rrtconnect", "prmstar")
     # PRM* alone would use the whole 5 s; the win stopped it long before.
     assert result.planning_time_s < 2.0
-
-
-def test_race_calls_returns_the_first_success_or_every_failure() -> None:
-    found = PlanResult(PlanStatus.SUCCESS, np.zeros((2, 2)), "found", 0.0)
-    missed = PlanResult(PlanStatus.TIMEOUT, None, "missed", 0.0)
-    winner, result = race_calls([("slow", lambda: (time.sleep(3.0), missed)[1]), ("quick", lambda: found)],
-                                time_limit_s=5.0)
-    assert winner == "quick" and result.success and result.detail == "found"
-    assert result.planning_time_s < 3.0  # the slow one was not waited for
-    winner, result = race_calls([("a", lambda: missed), ("b", lambda: missed)], time_limit_s=1.0)
-    assert winner == "a" and not result.success and result.detail == "missed; missed"
-    winner, result = race_calls([("raises", lambda: 1 / 0)], time_limit_s=1.0)
-    assert not result.success and "ZeroDivisionError" in result.detail
-    with pytest.raises(ValueError, match="at least one"):
-        race_calls([], time_limit_s=1.0)
