@@ -149,8 +149,6 @@ class CollisionWorld:
         seen = None if seen_voxels_m is None else np.asarray(seen_voxels_m, dtype=np.float64)
         if seen is not None and (seen.ndim != 2 or seen.shape[1] != 3 or not np.all(np.isfinite(seen))):
             raise ValueError(f"seen_voxels_m must be a finite (N, 3) array, got shape {seen.shape}")
-        self._seen_voxels_m = seen
-        self._octree_resolution_m = float(resolution_m)
         marker = octomap_binary.find(b"data\n")
         if not octomap_binary.startswith(b"# Octomap OcTree binary file") or marker < 0:
             raise ValueError("octomap_binary is not an octomap binary file (missing header or 'data' line)")
@@ -159,6 +157,9 @@ class CollisionWorld:
         res_in_file = float(fields.get("res", "nan"))
         if not math.isclose(res_in_file, resolution_m, rel_tol=1e-6):
             raise ValueError(f"resolution_m {resolution_m} differs from the octree's own resolution {res_in_file}")
+        # Only a map that passed the checks above replaces the seen voxels of the last one.
+        self._seen_voxels_m = seen
+        self._octree_resolution_m = float(resolution_m)
         body = octomap_binary[marker + len(b"data\n"):]
         if int(fields.get("size", "0")) == 0 or not body:
             # FCL reports an empty octree as colliding with everything; an empty map has no obstacles.

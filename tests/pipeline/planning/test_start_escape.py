@@ -165,5 +165,8 @@ def test_seen_voxels_must_be_finite_triples(panda) -> None:
         world.set_octree(binary, VOXEL_M, np.array([[np.nan, 0.0, 0.0]]))
     world.set_octree(binary, VOXEL_M, np.array([[1.01, 1.01, 1.01]]))
     assert world.seen_voxels_m.shape == (1, 3) and world.octree_resolution_m == VOXEL_M
+    with pytest.raises(ValueError, match="octomap binary"):
+        world.set_octree(b"not a map", VOXEL_M, np.zeros((5, 3)))
+    assert world.seen_voxels_m.shape == (1, 3)  # a refused map changes nothing
     world.clear_octree()
     assert world.seen_voxels_m is None and world.octree_resolution_m == 0.0
