@@ -185,6 +185,8 @@ def perception_filters(link_hull_vertices: Mapping[str, npt.ArrayLike], static_l
         robot_padding_m: The planner's padding of the robot's links [m].
     """
     reach_m = robot_padding_m + math.sqrt(3.0) * (0.5 * config.resolution_m + config.inflation_m)
-    return tuple(  # type: ignore[return-value]
-        SelfFilter(link_hull_vertices, padding_m, {name: max(padding_m, reach_m) for name in static_links})
-        for padding_m in (config.self_filter_padding_m, config.self_clear_padding_m))
+    static = tuple(static_links)
+
+    def grown(padding_m: float) -> SelfFilter:
+        return SelfFilter(link_hull_vertices, padding_m, {name: max(padding_m, reach_m) for name in static})
+    return grown(config.self_filter_padding_m), grown(config.self_clear_padding_m)
