@@ -27,16 +27,8 @@ import fcl
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from robonav.pipeline.broad_phase_kernels import (
-    BOX,
-    CAPSULE,
-    CONTACT_EPS_M,
-    CYLINDER,
-    SPHERE,
-    clearance_lower_bound,
-    edge_suspect_steps,
-    one_state_suspect,
-)
+from robonav.pipeline.broad_phase_kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE, clearance_lower_bound
+from robonav.pipeline.broad_phase_lanes import LANES, edge_suspect_steps, state_suspect_lanes
 from robonav.pipeline.kinematics_batch import LinkKinematics
 from robonav.pipeline.link_geometry import grow_hull
 from robonav.pipeline.robot import RobotModel
@@ -102,10 +94,21 @@ class SphereBroadPhase:
         self._self_pairs = np.array([(links.index(a), links.index(b)) for a, b in self_pairs],
                                     dtype=np.int64).reshape(-1, 2)
         self._padding_m = float(padding_m)
+        # The lane kernels place spheres straight from joint frames: link placements folded in.
+        self._link_joint = np.array(self._kin.link_joint, dtype=np.int64)
+        self._centers_joint = _to_joint_frame(self._kin, self._sphere_link, self._centers_link)
+        self._bound_center_joint = _to_joint_frame(self._kin, np.arange(n_links), bound_center)
+        self._kin_lane_args = self._kin.lane_arrays()
         # Scratch buffers (no allocation per call).
         self._scratch = self._kin.new_buffers()
         self._sphere_world = np.zeros((self._centers_link.shape[0], 3))
         self._bound_world_center = np.zeros((n_links, 3))
+        dof = robot.dof
+        self._lane_inputs = (np.zeros((dof, LANES)), np.zeros((dof, LANES)), np.zeros((dof, LANES)),
+                             np.zeros(LANES, dtype=np.bool_))
+        self._lane_scratch_fixed = (self._kin.new_lane_frames(LANES), np.zeros((self._centers_link.shape[0], 3, LANES)),
+                                    np.zeros((n_links, 3, LANES)), np.zeros(n_links, dtype=np.bool_),
+                                    np.zeros(LANES, dtype=np.bool_), np.zeros(LANES))
         self._step_buffer = np.zeros(1, dtype=np.int64)
         self._queue = np.zeros((1, 2), dtype=np.int64)
         self.clear_objects()
@@ -252,6 +255,9 @@ class SphereBroadPhase:
         self._att_link = np.concatenate(owner) if owner else np.zeros(0, dtype=np.int64)
         self._att_skip = np.vstack(rows) if rows else np.zeros((0, len(links)), dtype=np.bool_)
         self._att_world = np.zeros((self._att_radius.shape[0], 3))
+        self._att_center_joint = _to_joint_frame(self._kin, self._att_link, self._att_center_link)
+        self._att_joint = self._link_joint[self._att_link]
+        self._att_lanes = np.zeros((self._att_radius.shape[0], 3, LANES))
         self._refresh_args()
 
     # --- queries -------------------------------------------------------------------------------
@@ -260,7 +266,7 @@ class SphereBroadPhase:
         # Built once per world change: rebuilding the tuple each call would add Python work to
         # the hot path. Grouped in a few tuples so a call has fewer than 30 arguments: CPython
         # passes longer argument lists as a *args tuple, and numba cannot inline such a call.
-        if not hasattr(self, "_att_world") or not hasattr(self, "_has_grid") or not hasattr(self, "_obj_kind"):
+        if not hasattr(self, "_att_lanes") or not hasattr(self, "_has_grid") or not hasattr(self, "_obj_kind"):
             return
         spheres = (self._centers_link, self._radii_self, self._radii_world, self._link_start, self._bound_center_link,
                    self._bound_self, self._bound_world, self._self_pairs, self._sphere_world, self._bound_world_center)
@@ -268,11 +274,18 @@ class SphereBroadPhase:
         grid = (self._has_grid, self._grid, self._grid_origin, self._grid_voxel, self._grid_box, self._occupied)
         attached = (self._att_center_link, self._att_radius, self._att_radius_world, self._att_link, self._att_skip,
                     self._att_world)
-        self._args = (self._kin_args, self._scratch, spheres, objects, grid, attached)
+        self._clearance_args = (self._kin_args, self._scratch, spheres, objects, grid, attached)
+        lane_spheres = (self._centers_joint, self._radii_self, self._radii_world, self._link_start,
+                        self._bound_center_joint, self._bound_self, self._bound_world, self._self_pairs,
+                        self._link_joint)
+        lane_attached = (self._att_center_joint, self._att_radius, self._att_radius_world, self._att_joint,
+                         self._att_skip)
+        self._args = (self._kin_lane_args, (*self._lane_scratch_fixed, self._att_lanes), self._lane_inputs,
+                      lane_spheres, objects, grid, lane_attached)
 
     def state_suspect(self, q: FloatArray) -> bool:
         """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free."""
-        return bool(one_state_suspect(np.array(q, dtype=np.float64), *self._args))
+        return bool(state_suspect_lanes(np.array(q, dtype=np.float64), *self._args))
 
     def link_pose_stack(self, q: FloatArray) -> FloatArray:
         """world_from_link (L, 4, 4) of the collision links at `q` (dof,), compiled (`LinkKinematics`)."""
@@ -282,7 +295,7 @@ class SphereBroadPhase:
         """A lower bound on the distance from the unpadded robot at `q` (dof,) to the objects and
         occupied voxels [m]: the spheres contain the bare hulls. Negative when spheres overlap
         the world, +inf when it is empty; attached spheres count too (their padding left out)."""
-        return float(clearance_lower_bound(np.array(q, dtype=np.float64), *self._args))
+        return float(clearance_lower_bound(np.array(q, dtype=np.float64), *self._clearance_args))
 
     def self_suspect(self, q: FloatArray) -> bool:
         """True if spheres of a self-collision pair touch at `q` (dof,) (the world ignored).
@@ -327,6 +340,14 @@ class SphereBroadPhase:
             count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue,
                                               *self._args)
         return self._step_buffer[:count].copy(), steps
+
+
+def _to_joint_frame(kin: LinkKinematics, link_index: np.ndarray, points_link: FloatArray) -> FloatArray:
+    """(N, 3) points given in the frames of collision links `link_index` (N,), in their joints' frames."""
+    index = np.asarray(link_index, dtype=np.int64)
+    points = np.asarray(points_link, dtype=np.float64).reshape(-1, 3)
+    rotated = np.einsum("nij,nj->ni", kin.joint_from_link_rotation[index], points)
+    return np.ascontiguousarray(rotated + kin.joint_from_link_translation_m[index])
 
 
 def _padded_growth_m(vertices: FloatArray, triangles: np.ndarray, padding_m: float) -> float:

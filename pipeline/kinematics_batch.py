@@ -169,6 +169,57 @@ class LinkKinematics:
                 self.joint_from_link_translation_m, self.base_joint, self.joint_from_base_rotation,
                 self.joint_from_base_translation_m)
 
+    def lane_arrays(self) -> tuple:
+        """The arguments `forward_joints_lanes` takes after the lane inputs, in order.
+
+        Per joint, 33 coefficients: A, B, C (each a row-major 3x3), t (3,) and d (3,), such that
+        parent_from_joint(q) has rotation A + sin(q) B + (1 - cos(q)) C and translation t for a
+        revolute joint (Rodrigues' formula premultiplied by the placement), rotation A and
+        translation t + q d for a prismatic one. Joint 0 carries world_from_root when the base
+        link hangs from the universe (then every frame comes out in the world frame directly).
+        """
+        n_joints = self.parent.shape[0]
+        coefficients = np.zeros((n_joints, 33))
+        for j in range(1, n_joints):
+            placement = self.parent_from_joint_rotation[j]
+            ax, ay, az = self.joint_axis[j]
+            skew = np.array([[0.0, -az, ay], [az, 0.0, -ax], [-ay, ax, 0.0]])
+            coefficients[j, 0:9] = placement.ravel()
+            if self.joint_type[j] == REVOLUTE:
+                coefficients[j, 9:18] = (placement @ skew).ravel()
+                coefficients[j, 18:27] = (placement @ skew @ skew).ravel()
+            else:
+                coefficients[j, 30:33] = placement @ self.joint_axis[j]
+            coefficients[j, 27:30] = self.parent_from_joint_translation_m[j]
+        root_from_base = np.eye(4)
+        root_from_base[:3, :3] = self.joint_from_base_rotation
+        root_from_base[:3, 3] = self.joint_from_base_translation_m
+        world_from_root = np.linalg.inv(root_from_base) if self.base_joint == 0 else np.eye(4)
+        coefficients[0, 0:9] = world_from_root[:3, :3].ravel()
+        coefficients[0, 27:30] = world_from_root[:3, 3]
+        joint_from_base = np.concatenate([self.joint_from_base_rotation.ravel(), self.joint_from_base_translation_m])
+        return self.parent, self.joint_type, self.q_slot, coefficients, self.base_joint, joint_from_base
+
+    def new_lane_frames(self, lanes: int) -> FloatArray:
+        """Output buffer (J, 12, lanes) of `forward_joints_lanes`."""
+        return np.zeros((self.parent.shape[0], 12, lanes))
+
+    def joint_poses_lanes(self, qs: FloatArray) -> FloatArray:
+        """world_from_joint (M, J, 4, 4) for each row of `qs` (M, dof), by `forward_joints_lanes`
+        (for tests: the lane kinematics against Pinocchio)."""
+        arr = np.ascontiguousarray(qs, dtype=np.float64)
+        if arr.ndim != 2 or arr.shape[1] != self.dof:
+            raise ValueError(f"qs must have shape (M, {self.dof}), got shape {arr.shape}")
+        count = arr.shape[0]
+        frames = self.new_lane_frames(count)
+        q_lanes = np.ascontiguousarray(arr.T)
+        forward_joints_lanes(count, np.cos(q_lanes), np.sin(q_lanes), q_lanes, *self.lane_arrays(), frames)
+        out = np.zeros((count, frames.shape[0], 4, 4))
+        out[:, :, :3, :3] = frames[:, :9, :].transpose(2, 0, 1).reshape(count, -1, 3, 3)
+        out[:, :, :3, 3] = frames[:, 9:, :].transpose(2, 0, 1)
+        out[:, :, 3, 3] = 1.0
+        return out
+
 
 @nb.njit(cache=True, inline="always")
 def _compose(a_rotation: FloatArray, a_row: int, a_translation: FloatArray, b_rotation: FloatArray, b_row: int,
@@ -311,3 +362,120 @@ def _poses_batch(qs, parent, parent_from_joint_rotation, parent_from_joint_trans
                     out[m, link, r, c] = link_rotation[link, r, c]
                 out[m, link, r, 3] = link_translation[link, r]
             out[m, link, 3, 3] = 1.0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def forward_joints_lanes(
+    n: int,
+    cos_lanes: FloatArray,
+    sin_lanes: FloatArray,
+    q_lanes: FloatArray,
+    parent: IntArray,
+    joint_type: IntArray,
+    q_slot: IntArray,
+    coefficients: FloatArray,
+    base_joint: int,
+    joint_from_base: FloatArray,
+    frames: FloatArray,
+) -> None:  # pragma: no cover (compiled)
+    """Compiled forward kinematics of n states at once: world_from_joint of every joint.
+
+    States are lanes of the innermost axis, so each joint's arithmetic is one loop over the
+    lanes that the compiler turns into SIMD instructions (VAMP's idea: several states per
+    instruction instead of one); the sphere broad phase places its spheres straight from these
+    joint frames, with the link placements folded into the sphere centres.
+
+    Args:
+        n: Lanes in use (<= frames.shape[2]).
+        cos_lanes: (dof, >= n) cos(q) per joint slot and lane.
+        sin_lanes: (dof, >= n) sin(q).
+        q_lanes: (dof, >= n) q itself (read by prismatic joints) [rad or m].
+        parent ... joint_from_base: `LinkKinematics.lane_arrays()`.
+        frames: (J, 12, >= n) output: per joint a row-major rotation (9) and a translation (3).
+    """
+    n_joints = parent.shape[0]
+    for r in range(9):
+        value = coefficients[0, r]
+        for w in range(n):
+            frames[0, r, w] = value
+    for r in range(3):
+        value = coefficients[0, 27 + r]
+        for w in range(n):
+            frames[0, 9 + r, w] = value
+    for j in range(1, n_joints):
+        p, slot = parent[j], q_slot[j]
+        a00, a01, a02, a10, a11, a12, a20, a21, a22 = (coefficients[j, 0], coefficients[j, 1], coefficients[j, 2],
+                                                       coefficients[j, 3], coefficients[j, 4], coefficients[j, 5],
+                                                       coefficients[j, 6], coefficients[j, 7], coefficients[j, 8])
+        tx, ty, tz = coefficients[j, 27], coefficients[j, 28], coefficients[j, 29]
+        if joint_type[j] == REVOLUTE:
+            b00, b01, b02, b10, b11, b12, b20, b21, b22 = (coefficients[j, 9], coefficients[j, 10], coefficients[j, 11],
+                                                           coefficients[j, 12], coefficients[j, 13], coefficients[j, 14],
+                                                           coefficients[j, 15], coefficients[j, 16], coefficients[j, 17])
+            c00, c01, c02, c10, c11, c12, c20, c21, c22 = (coefficients[j, 18], coefficients[j, 19], coefficients[j, 20],
+                                                           coefficients[j, 21], coefficients[j, 22], coefficients[j, 23],
+                                                           coefficients[j, 24], coefficients[j, 25], coefficients[j, 26])
+            for w in range(n):
+                s, v = sin_lanes[slot, w], 1.0 - cos_lanes[slot, w]
+                m00, m01, m02 = a00 + s * b00 + v * c00, a01 + s * b01 + v * c01, a02 + s * b02 + v * c02
+                m10, m11, m12 = a10 + s * b10 + v * c10, a11 + s * b11 + v * c11, a12 + s * b12 + v * c12
+                m20, m21, m22 = a20 + s * b20 + v * c20, a21 + s * b21 + v * c21, a22 + s * b22 + v * c22
+                _compose_lane(frames, p, j, w, m00, m01, m02, m10, m11, m12, m20, m21, m22, tx, ty, tz)
+        else:
+            dx, dy, dz = coefficients[j, 30], coefficients[j, 31], coefficients[j, 32]
+            for w in range(n):
+                value = q_lanes[slot, w]
+                _compose_lane(frames, p, j, w, a00, a01, a02, a10, a11, a12, a20, a21, a22,
+                              tx + dx * value, ty + dy * value, tz + dz * value)
+    if base_joint != 0:
+        # The world frame hangs below a planning joint: world_from_root = inverse(root_from_base)
+        # differs per lane, and every frame is moved into the world frame after the pass above.
+        base, inv, frame = np.empty(12), np.empty(12), np.empty(12)
+        for w in range(n):
+            for r in range(3):
+                for c in range(3):
+                    base[3 * r + c] = (frames[base_joint, 3 * r, w] * joint_from_base[c]
+                                       + frames[base_joint, 3 * r + 1, w] * joint_from_base[3 + c]
+                                       + frames[base_joint, 3 * r + 2, w] * joint_from_base[6 + c])
+                base[9 + r] = (frames[base_joint, 9 + r, w] + frames[base_joint, 3 * r, w] * joint_from_base[9]
+                               + frames[base_joint, 3 * r + 1, w] * joint_from_base[10]
+                               + frames[base_joint, 3 * r + 2, w] * joint_from_base[11])
+            # inverse: rotation transposed, translation -R^T t
+            for r in range(3):
+                for c in range(3):
+                    inv[3 * r + c] = base[3 * c + r]
+            for r in range(3):
+                inv[9 + r] = -(inv[3 * r] * base[9] + inv[3 * r + 1] * base[10] + inv[3 * r + 2] * base[11])
+            for j in range(1, n_joints):
+                for k in range(12):
+                    frame[k] = frames[j, k, w]
+                for r in range(3):
+                    for c in range(3):
+                        frames[j, 3 * r + c, w] = (inv[3 * r] * frame[c] + inv[3 * r + 1] * frame[3 + c]
+                                                   + inv[3 * r + 2] * frame[6 + c])
+                    frames[j, 9 + r, w] = (inv[9 + r] + inv[3 * r] * frame[9] + inv[3 * r + 1] * frame[10]
+                                           + inv[3 * r + 2] * frame[11])
+            for k in range(12):
+                frames[0, k, w] = inv[k]
+
+
+@nb.njit(cache=True, inline="always")
+def _compose_lane(frames: FloatArray, p: int, j: int, w: int, m00: float, m01: float, m02: float, m10: float,
+                  m11: float, m12: float, m20: float, m21: float, m22: float, tx: float, ty: float,
+                  tz: float) -> None:  # pragma: no cover (compiled)
+    """frames[j, :, w] = frames[p, :, w] @ [m | t] (p < j, so the output aliases no input)."""
+    p00, p01, p02 = frames[p, 0, w], frames[p, 1, w], frames[p, 2, w]
+    p10, p11, p12 = frames[p, 3, w], frames[p, 4, w], frames[p, 5, w]
+    p20, p21, p22 = frames[p, 6, w], frames[p, 7, w], frames[p, 8, w]
+    frames[j, 0, w] = p00 * m00 + p01 * m10 + p02 * m20
+    frames[j, 1, w] = p00 * m01 + p01 * m11 + p02 * m21
+    frames[j, 2, w] = p00 * m02 + p01 * m12 + p02 * m22
+    frames[j, 3, w] = p10 * m00 + p11 * m10 + p12 * m20
+    frames[j, 4, w] = p10 * m01 + p11 * m11 + p12 * m21
+    frames[j, 5, w] = p10 * m02 + p11 * m12 + p12 * m22
+    frames[j, 6, w] = p20 * m00 + p21 * m10 + p22 * m20
+    frames[j, 7, w] = p20 * m01 + p21 * m11 + p22 * m21
+    frames[j, 8, w] = p20 * m02 + p21 * m12 + p22 * m22
+    frames[j, 9, w] = frames[p, 9, w] + p00 * tx + p01 * ty + p02 * tz
+    frames[j, 10, w] = frames[p, 10, w] + p10 * tx + p11 * ty + p12 * tz
+    frames[j, 11, w] = frames[p, 11, w] + p20 * tx + p21 * ty + p22 * tz

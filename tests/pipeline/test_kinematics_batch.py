@@ -38,6 +38,12 @@ def _assert_matches(robot: RobotModel, seed: int, count: int = 200) -> None:
     for i in range(count):
         np.testing.assert_allclose(compiled[i], robot.link_pose_stack(qs[i]), atol=1e-9, rtol=0)
     np.testing.assert_allclose(kinematics.link_pose_stack(qs[0]), compiled[0], atol=0, rtol=0)
+    # The lane kinematics (several states per call, joint frames) give the same link poses.
+    joint_from_link = np.tile(np.eye(4), (kinematics.link_count, 1, 1))
+    joint_from_link[:, :3, :3] = kinematics.joint_from_link_rotation
+    joint_from_link[:, :3, 3] = kinematics.joint_from_link_translation_m
+    lanes = kinematics.joint_poses_lanes(qs)
+    np.testing.assert_allclose(lanes[:, kinematics.link_joint] @ joint_from_link, compiled, atol=1e-9, rtol=0)
 
 
 def test_panda_matches_pinocchio(panda: RobotModel) -> None:
