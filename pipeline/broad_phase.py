@@ -28,7 +28,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from robonav.pipeline.broad_phase_kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE, clearance_lower_bound
-from robonav.pipeline.broad_phase_lanes import LANES, edge_suspect_steps, state_suspect_lanes
+from robonav.pipeline.broad_phase_lanes import LANES, LaneWorld, edge_suspect_steps, state_suspect_lanes
 from robonav.pipeline.kinematics_batch import LinkKinematics
 from robonav.pipeline.link_geometry import grow_hull
 from robonav.pipeline.robot import RobotModel
@@ -104,11 +104,11 @@ class SphereBroadPhase:
         self._sphere_world = np.zeros((self._centers_link.shape[0], 3))
         self._bound_world_center = np.zeros((n_links, 3))
         dof = robot.dof
-        self._lane_inputs = (np.zeros((dof, LANES)), np.zeros((dof, LANES)), np.zeros((dof, LANES)),
-                             np.zeros(LANES, dtype=np.bool_))
-        self._lane_scratch_fixed = (self._kin.new_lane_frames(LANES), np.zeros((self._centers_link.shape[0], 3, LANES)),
-                                    np.zeros((n_links, 3, LANES)), np.zeros(n_links, dtype=np.bool_),
-                                    np.zeros(LANES, dtype=np.bool_), np.zeros(LANES))
+        self._lane_scratch = dict(
+            cos_lanes=np.zeros((dof, LANES)), sin_lanes=np.zeros((dof, LANES)), q_lanes=np.zeros((dof, LANES)),
+            flags=np.zeros(LANES, dtype=np.bool_), frames=self._kin.new_lane_frames(LANES),
+            sphere_lanes=np.zeros((self._centers_link.shape[0], 3, LANES)), bound_lanes=np.zeros((n_links, 3, LANES)),
+            placed=np.zeros(n_links, dtype=np.bool_), near=np.zeros(LANES, dtype=np.bool_), distance=np.zeros(LANES))
         self._step_buffer = np.zeros(1, dtype=np.int64)
         self._queue = np.zeros((1, 2), dtype=np.int64)
         self.clear_objects()
@@ -275,17 +275,22 @@ class SphereBroadPhase:
         attached = (self._att_center_link, self._att_radius, self._att_radius_world, self._att_link, self._att_skip,
                     self._att_world)
         self._clearance_args = (self._kin_args, self._scratch, spheres, objects, grid, attached)
-        lane_spheres = (self._centers_joint, self._radii_self, self._radii_world, self._link_start,
-                        self._bound_center_joint, self._bound_self, self._bound_world, self._self_pairs,
-                        self._link_joint)
-        lane_attached = (self._att_center_joint, self._att_radius, self._att_radius_world, self._att_joint,
-                         self._att_skip)
-        self._args = (self._kin_lane_args, (*self._lane_scratch_fixed, self._att_lanes), self._lane_inputs,
-                      lane_spheres, objects, grid, lane_attached)
+        parent, joint_type, q_slot, coefficients, base_joint, joint_from_base = self._kin_lane_args
+        self._lane_world = LaneWorld(
+            parent=parent, joint_type=joint_type, q_slot=q_slot, coefficients=coefficients, base_joint=base_joint,
+            joint_from_base=joint_from_base, centers_joint=self._centers_joint, radii_self=self._radii_self,
+            radii_world=self._radii_world, link_start=self._link_start, bound_center_joint=self._bound_center_joint,
+            bound_self=self._bound_self, bound_world=self._bound_world, self_pairs=self._self_pairs,
+            link_joint=self._link_joint, obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,
+            obj_translation=self._obj_translation, obj_param=self._obj_param, obj_bound=self._obj_bound,
+            has_grid=self._has_grid, grid=self._grid, grid_origin=self._grid_origin, grid_voxel=self._grid_voxel,
+            grid_box=self._grid_box, occupied=self._occupied, att_center_joint=self._att_center_joint,
+            att_radius=self._att_radius, att_radius_world=self._att_radius_world, att_joint=self._att_joint,
+            att_skip=self._att_skip, att_lanes=self._att_lanes, **self._lane_scratch)
 
     def state_suspect(self, q: FloatArray) -> bool:
         """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free."""
-        return bool(state_suspect_lanes(np.array(q, dtype=np.float64), *self._args))
+        return bool(state_suspect_lanes(np.array(q, dtype=np.float64), self._lane_world))
 
     def link_pose_stack(self, q: FloatArray) -> FloatArray:
         """world_from_link (L, 4, 4) of the collision links at `q` (dof,), compiled (`LinkKinematics`)."""
@@ -332,13 +337,14 @@ class SphereBroadPhase:
             raise ValueError(f"resolution_rad must be finite and > 0, got {resolution_rad}")
         # Plain float and bool: an int would make numba compile another specialisation.
         resolution_rad, first_only = float(resolution_rad), bool(first_only)
-        count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue, *self._args)
+        count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue,
+                                          self._lane_world)
         if count < 0:
             # order (steps + 1 entries) and the FIFO of spans (< 2 * steps + 1 entries) share `_queue`.
             self._step_buffer = np.zeros(2 * steps + 2, dtype=np.int64)
             self._queue = np.zeros((2 * steps + 2, 2), dtype=np.int64)
             count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue,
-                                              *self._args)
+                                              self._lane_world)
         return self._step_buffer[:count].copy(), steps
 
 
