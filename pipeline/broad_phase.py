@@ -331,9 +331,9 @@ class SphereBroadPhase:
         """
         # This runs once per tree edge: the step count is left to the compiled code (numpy's
         # reductions on 7 numbers cost microseconds), and the buffers grow only when too short.
-        a = np.array(q_a, dtype=np.float64)
-        b = np.array(q_b, dtype=np.float64)
-        if not (math.isfinite(resolution_rad) and resolution_rad > 0):
+        a = np.ascontiguousarray(q_a, dtype=np.float64)
+        b = np.ascontiguousarray(q_b, dtype=np.float64)
+        if not resolution_rad > 0 or resolution_rad == math.inf:  # NaN fails the first test
             raise ValueError(f"resolution_rad must be finite and > 0, got {resolution_rad}")
         # Plain float and bool: an int would make numba compile another specialisation.
         resolution_rad, first_only = float(resolution_rad), bool(first_only)

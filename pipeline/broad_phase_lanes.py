@@ -39,6 +39,9 @@ from robonav.pipeline.kinematics_batch import forward_joints_lanes
 LANES = 16
 """States checked together (measured on MBM edges, per state: 4 lanes 0.87 us, 8 0.67, 16 0.59)."""
 
+VECTOR = 4
+"""float64 lanes in one AVX2 vector."""
+
 LANE_WORLD_FIELDS: tuple[str, ...] = (
     # kinematics (`LinkKinematics.lane_arrays`)
     "parent", "joint_type", "q_slot", "coefficients", "base_joint", "joint_from_base",
@@ -370,13 +373,15 @@ def edge_suspect_steps(a, b, resolution, first_only, out, queue, world: LaneWorl
     count = 0
     for first in range(0, n_order, LANES):
         n = min(LANES, n_order - first)
-        for w in range(LANES):
+        # A short chunk is padded to a whole number of vectors (VECTOR lanes) with copies.
+        lanes = min(LANES, (n + VECTOR - 1) // VECTOR * VECTOR)
+        for w in range(lanes):
             k = order[first + min(w, n - 1)]
             t = k / steps
             for j in range(dof):
                 cos_lanes[j, w], sin_lanes[j, w] = trig[k, 0, j], trig[k, 1, j]
                 q_lanes[j, w] = a[j] + (b[j] - a[j]) * t
-        lanes_suspect(LANES, world, first_only)
+        lanes_suspect(lanes, world, first_only)
         for w in range(n):
             if flags[w]:
                 out[count] = order[first + w]
