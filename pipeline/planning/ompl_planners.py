@@ -94,12 +94,14 @@ class JointSpaceProblem:
 class _EdgeValidator(ob.MotionValidator):
     """Checks a whole tree edge with one Python call instead of OMPL's per-state discretisation."""
 
-    def __init__(self, info: ob.SpaceInformation, check: Callable[[ob.State, ob.State], bool]) -> None:
+    def __init__(self, info: ob.SpaceInformation, motion_valid: Callable[[FloatArray, FloatArray], bool],
+                 to_array: Callable[[ob.State], FloatArray]) -> None:
         super().__init__(info)
-        self._check = check
+        self._motion_valid = motion_valid
+        self._to_array = to_array
 
     def checkMotion(self, a: ob.State, b: ob.State) -> bool:  # noqa: N802 (OMPL's name)
-        return self._check(a, b)
+        return bool(self._motion_valid(self._to_array(a), self._to_array(b)))
 
 
 class OmplSpace:
@@ -121,6 +123,7 @@ class OmplSpace:
             raise ValueError(f"range_rad must be finite and >= 0, got {range_rad}")
         ou.setLogLevel(ou.LogLevel.LOG_WARN)  # OMPL logs every solve at INFO level otherwise
         self.dof = n
+        self._indices = range(n)
         self.lower_rad, self.upper_rad = lower, upper
         self.problem = problem
         self.range_rad = float(range_rad)
@@ -131,18 +134,18 @@ class OmplSpace:
             bounds.setHigh(i, float(upper[i]))
         self.space.setBounds(bounds)
         self.info = ob.SpaceInformation(self.space)
-        is_valid, motion_valid = problem.is_valid, problem.motion_valid
-        self.info.setStateValidityChecker(lambda state: bool(is_valid(self.to_array(state))))
+        is_valid, to_array = problem.is_valid, self.to_array
+        self.info.setStateValidityChecker(lambda state: bool(is_valid(to_array(state))))
         # OMPL holds a raw reference to the validator: it must live as long as this object.
-        self._validator = _EdgeValidator(
-            self.info, lambda a, b: bool(motion_valid(self.to_array(a), self.to_array(b))))
+        self._validator = _EdgeValidator(self.info, problem.motion_valid, to_array)
         self.info.setMotionValidator(self._validator)
         self.info.setup()
         self._planners: dict[str, ob.Planner] = {}
         self._lock = threading.Lock()
 
     def to_array(self, state: ob.State) -> FloatArray:
-        return np.array([state[i] for i in range(self.dof)], dtype=np.float64)
+        # Called twice per edge check: an iterator into fromiter costs less than a list.
+        return np.fromiter(map(state.__getitem__, self._indices), np.float64, self.dof)
 
     def _state(self, q: FloatArray) -> ob.State:
         state = self.space.allocState()
