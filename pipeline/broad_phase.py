@@ -28,7 +28,13 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from robonav.pipeline.broad_phase_kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE, clearance_lower_bound
-from robonav.pipeline.broad_phase_lanes import LANES, LaneWorld, edge_suspect_steps, state_suspect_lanes
+from robonav.pipeline.broad_phase_lanes import (
+    LANES,
+    LaneWorld,
+    edge_suspect_steps,
+    state_suspect_lanes,
+    suspect_pairs_of_state,
+)
 from robonav.pipeline.kinematics_batch import LinkKinematics
 from robonav.pipeline.link_geometry import grow_hull
 from robonav.pipeline.robot import RobotModel
@@ -281,16 +287,33 @@ class SphereBroadPhase:
             joint_from_base=joint_from_base, centers_joint=self._centers_joint, radii_self=self._radii_self,
             radii_world=self._radii_world, link_start=self._link_start, bound_center_joint=self._bound_center_joint,
             bound_self=self._bound_self, bound_world=self._bound_world, self_pairs=self._self_pairs,
-            link_joint=self._link_joint, obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,
+            link_joint=self._link_joint, joint_from_link_rotation=self._kin.joint_from_link_rotation,
+            joint_from_link_translation=self._kin.joint_from_link_translation_m, obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,
             obj_translation=self._obj_translation, obj_param=self._obj_param, obj_bound=self._obj_bound,
             has_grid=self._has_grid, grid=self._grid, grid_origin=self._grid_origin, grid_voxel=self._grid_voxel,
             grid_box=self._grid_box, occupied=self._occupied, att_center_joint=self._att_center_joint,
             att_radius=self._att_radius, att_radius_world=self._att_radius_world, att_joint=self._att_joint,
             att_skip=self._att_skip, att_lanes=self._att_lanes, **self._lane_scratch)
+        n_links = self._link_start.shape[0] - 1
+        self._pair_outputs = (np.zeros((n_links, self._obj_kind.shape[0]), dtype=np.bool_),
+                              np.zeros(n_links, dtype=np.bool_), np.zeros(self._self_pairs.shape[0], dtype=np.bool_),
+                              np.zeros((n_links, 4, 4)))
 
     def state_suspect(self, q: FloatArray) -> bool:
         """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free."""
         return bool(state_suspect_lanes(np.array(q, dtype=np.float64), self._lane_world))
+
+    def suspect_pairs(self, q: FloatArray) -> tuple[np.ndarray, np.ndarray, np.ndarray, FloatArray]:
+        """The pairs whose spheres are within contact at `q` (dof,): only these can collide in FCL.
+
+        Returns:
+            (L, K) bool: collision link l vs object k (`set_objects` order); (L,) bool: link l vs
+            the occupied voxels; (P,) bool: self-collision pair p (the `self_pairs` order); and
+            world_from_link (L, 4, 4) of the collision links. Buffers reused by the next call.
+        """
+        objects, voxels, pairs, poses = self._pair_outputs
+        suspect_pairs_of_state(np.array(q, dtype=np.float64), self._lane_world, objects, voxels, pairs, poses)
+        return objects, voxels, pairs, poses
 
     def link_pose_stack(self, q: FloatArray) -> FloatArray:
         """world_from_link (L, 4, 4) of the collision links at `q` (dof,), compiled (`LinkKinematics`)."""

@@ -47,7 +47,7 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "parent", "joint_type", "q_slot", "coefficients", "base_joint", "joint_from_base",
     # spheres, in their joints' frames
     "centers_joint", "radii_self", "radii_world", "link_start", "bound_center_joint", "bound_self", "bound_world",
-    "self_pairs", "link_joint",
+    "self_pairs", "link_joint", "joint_from_link_rotation", "joint_from_link_translation",
     # scene primitives
     "obj_kind", "obj_rotation", "obj_translation", "obj_param", "obj_bound",
     # occupied voxels: distance field and occupancy grid
@@ -392,3 +392,78 @@ def edge_suspect_steps(a, b, resolution, first_only, out, queue, world: LaneWorl
                 if first_only:
                     return count, steps
     return count, steps
+
+
+@nb.njit(cache=True, fastmath={"contract"})
+def suspect_pairs_of_state(q, world: LaneWorld, object_flags, voxel_flags, self_flags,
+                           world_from_link) -> None:  # pragma: no cover (compiled)
+    """Which pairs' spheres are within contact at the one state `q` (dof,), and the link poses.
+
+    The pairs FCL must look at, and no others: spheres that touch nothing clear their link.
+
+    Args:
+        q: (dof,) state.
+        world: The robot and scene (`LaneWorld`).
+        object_flags: (L, K) bool output: link l's spheres touch object k.
+        voxel_flags: (L,) bool output: link l's spheres touch an occupied voxel.
+        self_flags: (P,) bool output: the spheres of self-collision pair p touch.
+        world_from_link: (L, 4, 4) output: the collision links' poses.
+    """
+    cos_lanes, sin_lanes, q_lanes = world.cos_lanes, world.sin_lanes, world.q_lanes
+    for j in range(q.shape[0]):
+        cos_lanes[j, 0], sin_lanes[j, 0], q_lanes[j, 0] = math.cos(q[j]), math.sin(q[j]), q[j]
+    frames, sphere_lanes, bound_lanes, distance = world.frames, world.sphere_lanes, world.bound_lanes, world.distance
+    near = world.near
+    link_start, link_joint, radii_world, radii_self = world.link_start, world.link_joint, world.radii_world, world.radii_self
+    bound_world, bound_self, self_pairs = world.bound_world, world.bound_self, world.self_pairs
+    obj_kind, obj_rotation, obj_translation, obj_param = world.obj_kind, world.obj_rotation, world.obj_translation, world.obj_param
+    grid, grid_origin, grid_voxel, grid_box, occupied = world.grid, world.grid_origin, world.grid_voxel, world.grid_box, world.occupied
+    forward_joints_lanes(1, cos_lanes, sin_lanes, q_lanes, world.parent, world.joint_type, world.q_slot,
+                         world.coefficients, world.base_joint, world.joint_from_base, frames)
+    n_links = link_start.shape[0] - 1
+    for li in range(n_links):
+        j = link_joint[li]
+        _place_lanes(1, frames, j, world.bound_center_joint, li, li + 1, bound_lanes)
+        _place_lanes(1, frames, j, world.centers_joint, link_start[li], link_start[li + 1], sphere_lanes)
+        rotation, translation = world.joint_from_link_rotation, world.joint_from_link_translation
+        for r in range(3):
+            f0, f1, f2 = frames[j, 3 * r, 0], frames[j, 3 * r + 1, 0], frames[j, 3 * r + 2, 0]
+            for c in range(3):
+                world_from_link[li, r, c] = f0 * rotation[li, 0, c] + f1 * rotation[li, 1, c] + f2 * rotation[li, 2, c]
+            world_from_link[li, r, 3] = (frames[j, 9 + r, 0] + f0 * translation[li, 0] + f1 * translation[li, 1]
+                                         + f2 * translation[li, 2])
+            world_from_link[li, 3, r] = 0.0
+        world_from_link[li, 3, 3] = 1.0
+        for k in range(obj_kind.shape[0]):
+            object_flags[li, k] = False
+            _object_distance_lanes(1, bound_lanes, li, k, obj_kind, obj_rotation, obj_translation, obj_param, distance)
+            if distance[0] > bound_world[li]:
+                continue
+            for s in range(link_start[li], link_start[li + 1]):
+                _object_distance_lanes(1, sphere_lanes, s, k, obj_kind, obj_rotation, obj_translation, obj_param,
+                                       distance)
+                if distance[0] <= radii_world[s] + CONTACT_EPS_M:
+                    object_flags[li, k] = True
+                    break
+        voxel_flags[li] = False
+        if world.has_grid and voxel_distance(bound_lanes[li, 0, 0], bound_lanes[li, 1, 0], bound_lanes[li, 2, 0], grid,
+                                             grid_origin, grid_voxel, grid_box) <= bound_world[li]:
+            for s in range(link_start[li], link_start[li + 1]):
+                x, y, z = sphere_lanes[s, 0, 0], sphere_lanes[s, 1, 0], sphere_lanes[s, 2, 0]
+                reach = radii_world[s] + CONTACT_EPS_M
+                if voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach and touches_voxels(
+                        x, y, z, reach, occupied, grid_origin, grid_voxel):
+                    voxel_flags[li] = True
+                    break
+    for p in range(self_pairs.shape[0]):
+        la, lb = self_pairs[p, 0], self_pairs[p, 1]
+        self_flags[p] = False
+        if not _points_within(1, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
+            continue
+        for sa in range(link_start[la], link_start[la + 1]):
+            for sb in range(link_start[lb], link_start[lb + 1]):
+                if _points_within(1, sphere_lanes, sa, sphere_lanes, sb, radii_self[sa] + radii_self[sb], near):
+                    self_flags[p] = True
+                    break
+            if self_flags[p]:
+                break

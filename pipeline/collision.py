@@ -103,6 +103,9 @@ class CollisionWorld:
         self._revision = 0
         self._world_from_shape_link = np.zeros((n, 4, 4))
         self._attached: dict[str, _Attached] = {}
+        link_pairs = {pair: p for p, pair in enumerate(self.self_collision_pairs)}
+        self._self_pair_link_pair = np.array([link_pairs[(self._links[a], self._links[b])] for a, b in self._self_pairs],
+                                             dtype=np.int64)
         # Conservative: a state it clears is FCL-free, so only its suspects reach `_check`.
         self._broad_phase = (SphereBroadPhase(robot, padding_m=padding, self_pairs=self.self_collision_pairs)
                              if broad_phase else None)
@@ -582,11 +585,16 @@ class CollisionWorld:
         # than half of a Pinocchio round trip, and every FCL check starts here.
         poses = (self._robot.link_pose_stack(q) if self._broad_phase is None
                  else self._broad_phase.link_pose_stack(self._robot.validate_q(q)))
+        self._set_link_poses(poses)
+        return np.einsum("sij,sj->si", self._world_from_shape_link[:, :3, :3], self._centers_link) \
+            + self._world_from_shape_link[:, :3, 3]
+
+    def _set_link_poses(self, poses: FloatArray) -> None:
+        """world_from_link (L, 4, 4) of the collision links become the poses FCL objects take."""
         if not self._one_shape_per_link:
             poses = poses[self._shape_link_index]
         self._world_from_shape_link = poses
         self._generation += 1
-        return np.einsum("sij,sj->si", poses[:, :3, :3], self._centers_link) + poses[:, :3, 3]
 
     def _posed_obj(self, s: int, *, padded: bool) -> fcl.CollisionObject:
         # Re-posing costs a few microseconds per object, so only objects that reach FCL get it.
@@ -608,41 +616,58 @@ class CollisionWorld:
         return 0.0 if d <= 0 else (math.inf if d >= 1e300 else float(d))
 
     def _check(self, q: FloatArray, *, first_only: bool, padded: bool = True) -> list[tuple[str, str]]:
-        centers = self._pose(q)
+        near_objects, near_octree, near_self, centers = self._near_pairs(q)
         hits: list[tuple[str, str]] = []
         links = self._links
-        if self._object_names:
-            gap = np.abs(centers[:, None, :] - self._object_center[None]) - self._object_half[None]
-            np.maximum(gap, 0.0, out=gap)
-            near = np.einsum("skj,skj->sk", gap, gap) <= self._padded_radii_sq
-            for s, k in zip(*np.nonzero(near)):
+        if near_objects is not None:
+            for s, k in zip(*np.nonzero(near_objects)):
                 pair = (links[s], self._object_names[k])
                 if pair not in hits and self._collide(self._posed_obj(int(s), padded=padded), self._object_fcl[k]):
                     hits.append(pair)
                     if first_only:
                         return hits
         if self._octree is not None:
-            for s in range(len(links)):
+            for s in np.flatnonzero(near_octree):
                 pair = (links[s], OCCUPANCY)
-                if pair not in hits and self._collide(self._posed_obj(s, padded=padded), self._octree):
+                if pair not in hits and self._collide(self._posed_obj(int(s), padded=padded), self._octree):
                     hits.append(pair)
                     if first_only:
                         return hits
-        if self._self_pairs.size:
-            i, j = self._self_pairs[:, 0], self._self_pairs[:, 1]
-            offset = centers[i] - centers[j]
-            near = np.einsum("pi,pi->p", offset, offset) <= (self._radii[i] + self._radii[j]) ** 2
-            for a, b in self._self_pairs[near]:
-                pair = (links[a], links[b])
-                if pair in hits:
-                    continue
-                if self._collide(self._posed_obj(int(a), padded=False), self._posed_obj(int(b), padded=False)):
-                    hits.append(pair)
-                    if first_only:
-                        return hits
+        for a, b in self._self_pairs[near_self]:
+            pair = (links[a], links[b])
+            if pair in hits:
+                continue
+            if self._collide(self._posed_obj(int(a), padded=False), self._posed_obj(int(b), padded=False)):
+                hits.append(pair)
+                if first_only:
+                    return hits
         if self._attached:
             self._check_attached(q, centers, hits, first_only=first_only)
         return hits
+
+    def _near_pairs(self, q: FloatArray):  # noqa: ANN202 - four arrays
+        """Pose the robot at `q` and say which pairs FCL must test.
+
+        Returns (S, K) shape-object and (S,) shape-octree masks, a mask over `_self_pairs` (the
+        object mask is None without objects) and the shapes' centres (S, 3), or None for them
+        when the sphere model answered: then only pairs whose spheres touch are tested (the
+        spheres contain the padded hulls, so no other pair can collide), which saves most FCL
+        calls and the culling here; otherwise bounding spheres against the objects' boxes cull."""
+        if self._broad_phase_usable():
+            objects, voxels, pairs, poses = self._broad_phase.suspect_pairs(self._robot.validate_q(q))
+            self._set_link_poses(poses.copy())
+            link = self._shape_link_index
+            return (objects[link] if self._object_names else None), voxels[link], pairs[self._self_pair_link_pair], None
+        centers = self._pose(q)
+        near_objects = None
+        if self._object_names:
+            gap = np.abs(centers[:, None, :] - self._object_center[None]) - self._object_half[None]
+            np.maximum(gap, 0.0, out=gap)
+            near_objects = np.einsum("skj,skj->sk", gap, gap) <= self._padded_radii_sq
+        i, j = self._self_pairs[:, 0], self._self_pairs[:, 1]
+        offset = centers[i] - centers[j]
+        near_self = np.einsum("pi,pi->p", offset, offset) <= (self._radii[i] + self._radii[j]) ** 2
+        return near_objects, np.ones(len(self._links), dtype=bool), near_self, centers
 
 
 def _occupied_leaf_centers(octomap_binary: bytes, resolution_m: float) -> FloatArray:

@@ -86,6 +86,29 @@ def test_same_answers_with_and_without_broad_phase(panda: RobotModel,
     assert any(fast_answers) and not all(fast_answers)
 
 
+def test_fcl_asked_only_of_pairs_whose_spheres_touch(panda: RobotModel) -> None:
+    """`collisions` lists the same pairs when FCL is asked only about the pairs the spheres flag,
+    objects and occupied voxels together; the flags come with the links' poses."""
+    fast, slow = CollisionWorld(panda, padding_m=0.01), CollisionWorld(panda, padding_m=0.01, broad_phase=False)
+    slab = np.stack(np.meshgrid(np.arange(-0.6, -0.4, 0.02), np.arange(-0.3, 0.3, 0.02), np.arange(0.0, 0.8, 0.02),
+                                indexing="ij"), axis=-1).reshape(-1, 3)
+    binary = _octree_binary(slab, 0.02)
+    for world in (fast, slow):
+        world.set_objects(_clutter())
+        world.set_octree(binary, 0.02)
+    broad = fast._broad_phase  # noqa: SLF001
+    qs = _random_states(panda, 600, seed=19)
+    kinds = set()
+    for q in qs:
+        expected = slow.collisions(q)
+        assert fast.collisions(q) == expected
+        kinds |= {"self" if b in panda.collision_link_names else b for _, b in expected}
+        objects, voxels, pairs, poses = broad.suspect_pairs(q)
+        np.testing.assert_allclose(poses, panda.link_pose_stack(q), atol=1e-9)
+        assert bool(objects.any() or voxels.any() or pairs.any()) == broad.state_suspect(q)
+    assert {"self", "occupancy"} <= kinds and len(kinds) >= 4
+
+
 def test_edge_visits_states_in_motion_valid_order(panda: RobotModel) -> None:
     broad = SphereBroadPhase(panda)
     # A box around the whole robot: every state is suspect, so the order is visible.
