@@ -31,6 +31,7 @@ from robonav.pipeline.broad_phase_kernels import BOX, CAPSULE, CONTACT_EPS_M, CY
 from robonav.pipeline.broad_phase_lanes import (
     LANES,
     LaneWorld,
+    clearance_pair_bounds,
     edge_suspect_steps,
     state_suspect_lanes,
     suspect_pairs_of_state,
@@ -314,6 +315,17 @@ class SphereBroadPhase:
         objects, voxels, pairs, poses = self._pair_outputs
         suspect_pairs_of_state(np.array(q, dtype=np.float64), self._lane_world, objects, voxels, pairs, poses)
         return objects, voxels, pairs, poses
+
+    def clearance_pair_bounds_m(self, states: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Per state of `states` (M, dof): lower bounds on the distance from each bare collision
+        link to each object and to the occupied voxels, (M, L, K + 1) [m] (column K: the voxels,
+        +inf without them), and the links' poses world_from_link (M, L, 4, 4)."""
+        arr = np.ascontiguousarray(states, dtype=np.float64).reshape(-1, self._robot.dof)
+        n_links = self._link_start.shape[0] - 1
+        bounds = np.empty((arr.shape[0], n_links, self._obj_kind.shape[0] + 1))
+        poses = np.empty((arr.shape[0], n_links, 4, 4))
+        clearance_pair_bounds(arr, self._lane_world, bounds, poses)
+        return bounds, poses
 
     def link_pose_stack(self, q: FloatArray) -> FloatArray:
         """world_from_link (L, 4, 4) of the collision links at `q` (dof,), compiled (`LinkKinematics`)."""

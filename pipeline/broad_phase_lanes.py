@@ -394,6 +394,18 @@ def edge_suspect_steps(a, b, resolution, first_only, out, queue, world: LaneWorl
     return count, steps
 
 
+@nb.njit(cache=True, inline="always")
+def _link_pose_lane0(frames, j: int, li: int, rotation, translation, out, row: int) -> None:  # pragma: no cover
+    """out[row] = world_from_link (4, 4) of collision link li, hanging from joint j, in lane 0."""
+    for r in range(3):
+        f0, f1, f2 = frames[j, 3 * r, 0], frames[j, 3 * r + 1, 0], frames[j, 3 * r + 2, 0]
+        for c in range(3):
+            out[row, r, c] = f0 * rotation[li, 0, c] + f1 * rotation[li, 1, c] + f2 * rotation[li, 2, c]
+        out[row, r, 3] = frames[j, 9 + r, 0] + f0 * translation[li, 0] + f1 * translation[li, 1] + f2 * translation[li, 2]
+        out[row, 3, r] = 0.0
+    out[row, 3, 3] = 1.0
+
+
 @nb.njit(cache=True, fastmath={"contract"})
 def suspect_pairs_of_state(q, world: LaneWorld, object_flags, voxel_flags, self_flags,
                            world_from_link) -> None:  # pragma: no cover (compiled)
@@ -425,15 +437,8 @@ def suspect_pairs_of_state(q, world: LaneWorld, object_flags, voxel_flags, self_
         j = link_joint[li]
         _place_lanes(1, frames, j, world.bound_center_joint, li, li + 1, bound_lanes)
         _place_lanes(1, frames, j, world.centers_joint, link_start[li], link_start[li + 1], sphere_lanes)
-        rotation, translation = world.joint_from_link_rotation, world.joint_from_link_translation
-        for r in range(3):
-            f0, f1, f2 = frames[j, 3 * r, 0], frames[j, 3 * r + 1, 0], frames[j, 3 * r + 2, 0]
-            for c in range(3):
-                world_from_link[li, r, c] = f0 * rotation[li, 0, c] + f1 * rotation[li, 1, c] + f2 * rotation[li, 2, c]
-            world_from_link[li, r, 3] = (frames[j, 9 + r, 0] + f0 * translation[li, 0] + f1 * translation[li, 1]
-                                         + f2 * translation[li, 2])
-            world_from_link[li, 3, r] = 0.0
-        world_from_link[li, 3, 3] = 1.0
+        _link_pose_lane0(frames, j, li, world.joint_from_link_rotation, world.joint_from_link_translation,
+                         world_from_link, li)
         for k in range(obj_kind.shape[0]):
             object_flags[li, k] = False
             _object_distance_lanes(1, bound_lanes, li, k, obj_kind, obj_rotation, obj_translation, obj_param, distance)
@@ -467,3 +472,46 @@ def suspect_pairs_of_state(q, world: LaneWorld, object_flags, voxel_flags, self_
                     break
             if self_flags[p]:
                 break
+
+
+@nb.njit(cache=True)
+def clearance_pair_bounds(states, world: LaneWorld, bounds, world_from_link) -> None:  # pragma: no cover (compiled)
+    """Lower bounds on the distance between each bare collision link and each obstacle, per state.
+
+    The bare spheres contain the bare hulls, so a link is no closer to an obstacle than its
+    nearest sphere's surface; for voxels the distance field is itself a lower bound.
+
+    Args:
+        states: (M, dof) states.
+        world: The robot and scene (`LaneWorld`).
+        bounds: (M, L, K + 1) output [m]: column k < K for object k, column K for the occupied
+            voxels (+inf without them); negative where spheres overlap an obstacle.
+        world_from_link: (M, L, 4, 4) output: the collision links' poses per state.
+    """
+    cos_lanes, sin_lanes, q_lanes = world.cos_lanes, world.sin_lanes, world.q_lanes
+    frames, sphere_lanes, distance = world.frames, world.sphere_lanes, world.distance
+    link_start, link_joint, radii_self = world.link_start, world.link_joint, world.radii_self
+    obj_kind, obj_rotation, obj_translation, obj_param = world.obj_kind, world.obj_rotation, world.obj_translation, world.obj_param
+    n_objects = obj_kind.shape[0]
+    for m in range(states.shape[0]):
+        for j in range(states.shape[1]):
+            value = states[m, j]
+            cos_lanes[j, 0], sin_lanes[j, 0], q_lanes[j, 0] = math.cos(value), math.sin(value), value
+        forward_joints_lanes(1, cos_lanes, sin_lanes, q_lanes, world.parent, world.joint_type, world.q_slot,
+                             world.coefficients, world.base_joint, world.joint_from_base, frames)
+        for li in range(link_start.shape[0] - 1):
+            j = link_joint[li]
+            _link_pose_lane0(frames, j, li, world.joint_from_link_rotation, world.joint_from_link_translation,
+                             world_from_link[m], li)
+            _place_lanes(1, frames, j, world.centers_joint, link_start[li], link_start[li + 1], sphere_lanes)
+            for k in range(n_objects + 1):
+                bounds[m, li, k] = math.inf
+            for s in range(link_start[li], link_start[li + 1]):
+                for k in range(n_objects):
+                    _object_distance_lanes(1, sphere_lanes, s, k, obj_kind, obj_rotation, obj_translation, obj_param,
+                                           distance)
+                    bounds[m, li, k] = min(bounds[m, li, k], distance[0] - radii_self[s])
+                if world.has_grid:
+                    gap = voxel_distance(sphere_lanes[s, 0, 0], sphere_lanes[s, 1, 0], sphere_lanes[s, 2, 0],
+                                         world.grid, world.grid_origin, world.grid_voxel, world.grid_box)
+                    bounds[m, li, n_objects] = min(bounds[m, li, n_objects], gap - radii_self[s])
