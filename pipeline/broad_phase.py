@@ -381,7 +381,13 @@ class SphereBroadPhase:
             self._queue = np.zeros((2 * steps + 2, 2), dtype=np.int64)
             count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue,
                                               self._lane_world)
+        if count == 0:
+            return _NO_STEPS, steps  # most edges: no slice and copy (read-only, shared)
         return self._step_buffer[:count].copy(), steps
+
+
+_NO_STEPS = np.zeros(0, dtype=np.int64)
+_NO_STEPS.flags.writeable = False
 
 
 def _to_joint_frame(kin: LinkKinematics, link_index: np.ndarray, points_link: FloatArray) -> FloatArray:

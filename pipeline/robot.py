@@ -52,6 +52,7 @@ class RobotModel:
     ) -> None:
         """Prefer `from_config`; this constructor trusts its (already consistent) arguments."""
         self._config = config
+        self._dof = len(config.joint_names)
         self._model = model
         self._data = model.createData()
         self._q_index = q_index
@@ -120,7 +121,7 @@ class RobotModel:
 
     @property
     def dof(self) -> int:
-        return len(self._config.joint_names)
+        return self._dof
 
     @property
     def lower_limits_rad(self) -> FloatArray:
@@ -184,7 +185,7 @@ class RobotModel:
             ValueError: wrong shape or a non-finite entry (the message names `label` and the index).
         """
         arr = np.asarray(q, dtype=np.float64)
-        if arr.shape != (self.dof,):
+        if arr.shape != (self._dof,):
             raise ValueError(
                 f"{label} must have shape ({self.dof},) (one value per joint {list(self.joint_names)}), "
                 f"got shape {arr.shape}"
