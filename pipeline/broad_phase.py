@@ -22,6 +22,7 @@ uses the unpadded spheres, as `CollisionWorld` does.
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Sequence
 
 import fcl
@@ -41,6 +42,7 @@ from robonav.pipeline.kinematics_batch import LinkKinematics
 from robonav.pipeline.link_geometry import grow_hull
 from robonav.pipeline.robot import RobotModel
 from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.self_pair_tables import SelfPairTables, build_self_pair_tables
 from robonav.pipeline.sphere_model import RobotSphereModel, robot_sphere_model
 from robonav.pipeline.transforms import FloatArray
 
@@ -55,7 +57,7 @@ class SphereBroadPhase:
 
     def __init__(self, robot: RobotModel, *, padding_m: float = 0.0,
                  self_pairs: Sequence[tuple[str, str]] | None = None,
-                 sphere_model: RobotSphereModel | None = None) -> None:
+                 sphere_model: RobotSphereModel | None = None, self_pair_tables: bool = True) -> None:
         """Build spheres, kinematics and the self-collision pair list.
 
         Args:
@@ -64,6 +66,9 @@ class SphereBroadPhase:
             self_pairs: Link pairs checked for self-collision (`CollisionWorld.self_collision_pairs`);
                 None derives them the same way (all pairs minus adjacent and allowed ones).
             sphere_model: Spheres to use; None builds (or reuses the cached) default cover.
+            self_pair_tables: Skip self pairs where a precomputed gap bound proves their spheres
+                apart (`self_pair_tables`; the answers are the same either way, so False is
+                for testing that).
         """
         if not (math.isfinite(padding_m) and padding_m >= 0):
             raise ValueError(f"padding_m must be finite and >= 0, got {padding_m}")
@@ -107,6 +112,9 @@ class SphereBroadPhase:
         self._centers_joint = _to_joint_frame(self._kin, self._sphere_link, self._centers_link)
         self._bound_center_joint = _to_joint_frame(self._kin, np.arange(n_links), bound_center)
         self._kin_lane_args = self._kin.lane_arrays()
+        self._pair_tables = (_cached_pair_tables(robot, self._kin, self._centers_joint, self._radii_self,
+                                                 self._link_start, self._self_pairs)
+                             if self_pair_tables else _no_pair_tables(self._self_pairs.shape[0]))
         # Scratch buffers (no allocation per call).
         self._scratch = self._kin.new_buffers()
         self._sphere_world = np.zeros((self._centers_link.shape[0], 3))
@@ -284,13 +292,16 @@ class SphereBroadPhase:
                     self._att_world)
         self._clearance_args = (self._kin_args, self._scratch, spheres, objects, grid, attached)
         parent, joint_type, q_slot, coefficients, base_joint, joint_from_base = self._kin_lane_args
+        tables = self._pair_tables
         self._lane_world = LaneWorld(
             parent=parent, joint_type=joint_type, q_slot=q_slot, coefficients=coefficients, base_joint=base_joint,
             joint_from_base=joint_from_base, centers_joint=self._centers_joint, radii_self=self._radii_self,
             radii_world=self._radii_world, link_start=self._link_start, bound_center_joint=self._bound_center_joint,
             bound_self=self._bound_self, bound_world=self._bound_world, self_pairs=self._self_pairs,
             link_joint=self._link_joint, joint_from_link_rotation=self._kin.joint_from_link_rotation,
-            joint_from_link_translation=self._kin.joint_from_link_translation_m, obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,
+            joint_from_link_translation=self._kin.joint_from_link_translation_m, pair_offset=tables.offset,
+            pair_slot=tables.slot, pair_low=tables.low, pair_step=tables.step, pair_count=tables.count,
+            pair_gap=tables.gap_m, obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,
             obj_translation=self._obj_translation, obj_param=self._obj_param, obj_bound=self._obj_bound,
             has_grid=self._has_grid, grid=self._grid, grid_origin=self._grid_origin, grid_voxel=self._grid_voxel,
             grid_box=self._grid_box, occupied=self._occupied, att_center_joint=self._att_center_joint,
@@ -388,6 +399,27 @@ class SphereBroadPhase:
 
 _NO_STEPS = np.zeros(0, dtype=np.int64)
 _NO_STEPS.flags.writeable = False
+
+
+_pair_tables_of: weakref.WeakKeyDictionary[RobotModel, dict[bytes, SelfPairTables]] = weakref.WeakKeyDictionary()
+
+
+def _cached_pair_tables(robot: RobotModel, kin: LinkKinematics, centers_joint: FloatArray, radii_m: FloatArray,
+                        link_start: np.ndarray, self_pairs: np.ndarray) -> SelfPairTables:
+    """`build_self_pair_tables`, once per robot, spheres and pair list (~0.5 s for the Panda, and
+    every planning world of a robot has the same)."""
+    key = b"".join(np.ascontiguousarray(x).tobytes() for x in (centers_joint, radii_m, link_start, self_pairs))
+    per_robot = _pair_tables_of.setdefault(robot, {})
+    if key not in per_robot:
+        per_robot[key] = build_self_pair_tables(kin, robot.lower_limits_rad, robot.upper_limits_rad, centers_joint,
+                                                radii_m, link_start, self_pairs)
+    return per_robot[key]
+
+
+def _no_pair_tables(n_pairs: int) -> SelfPairTables:
+    return SelfPairTables(np.full(n_pairs, -1, dtype=np.int64), np.full((n_pairs, 2), -1, dtype=np.int64),
+                          np.zeros((n_pairs, 2)), np.ones((n_pairs, 2)), np.ones((n_pairs, 2), dtype=np.int64),
+                          np.zeros(0))
 
 
 def _to_joint_frame(kin: LinkKinematics, link_index: np.ndarray, points_link: FloatArray) -> FloatArray:

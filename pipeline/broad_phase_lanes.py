@@ -35,6 +35,7 @@ from robonav.pipeline.broad_phase_kernels import (
     voxel_distance,
 )
 from robonav.pipeline.kinematics_batch import forward_joints_lanes
+from robonav.pipeline.self_pair_tables import ROUNDING_GUARD_M
 
 LANES = 16
 """States checked together (measured on MBM edges, per state: 4 lanes 0.87 us, 8 0.67, 16 0.59)."""
@@ -48,6 +49,8 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     # spheres, in their joints' frames
     "centers_joint", "radii_self", "radii_world", "link_start", "bound_center_joint", "bound_self", "bound_world",
     "self_pairs", "link_joint", "joint_from_link_rotation", "joint_from_link_translation",
+    # gap bounds of self pairs few joints apart (`self_pair_tables`)
+    "pair_offset", "pair_slot", "pair_low", "pair_step", "pair_count", "pair_gap",
     # scene primitives
     "obj_kind", "obj_rotation", "obj_translation", "obj_param", "obj_bound",
     # occupied voxels: distance field and occupancy grid
@@ -157,6 +160,25 @@ def _points_within(n: int, points_a, i: int, points_b, j: int, reach: float, out
 
 
 @nb.njit(cache=True, inline="always")
+def _pair_clear(n: int, p: int, q_lanes, offset, slot, low, step, count, gap) -> bool:  # pragma: no cover
+    """Whether self pair p's table proves its spheres apart in every lane (`self_pair_tables`)."""
+    if offset[p] < 0:
+        return False
+    for w in range(n):
+        flat = 0
+        for d in range(2):
+            if slot[p, d] < 0:
+                continue
+            i = int(math.floor((q_lanes[slot[p, d], w] - low[p, d]) / step[p, d] + 0.5))
+            if i < 0 or i >= count[p, d]:
+                return False  # outside the grid: the bound does not hold
+            flat = flat * count[p, d] + i
+        if gap[offset[p] + flat] <= CONTACT_EPS_M + ROUNDING_GUARD_M:
+            return False
+    return True
+
+
+@nb.njit(cache=True, inline="always")
 def _all_set(n: int, flags) -> bool:  # pragma: no cover (compiled)
     done = True
     for w in range(n):
@@ -214,6 +236,8 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     grid_box, occupied = world.grid_box, world.occupied
     att_center_joint, att_radius, att_radius_world = world.att_center_joint, world.att_radius, world.att_radius_world
     att_joint, att_skip = world.att_joint, world.att_skip
+    pair_offset, pair_slot, pair_low, pair_step = world.pair_offset, world.pair_slot, world.pair_low, world.pair_step
+    pair_count, pair_gap, q_lanes = world.pair_count, world.pair_gap, world.q_lanes
     forward_joints_lanes(lanes, world.cos_lanes, world.sin_lanes, world.q_lanes, world.parent, world.joint_type,
                          world.q_slot, world.coefficients, world.base_joint, world.joint_from_base, frames)
     n_links = link_start.shape[0] - 1
@@ -263,6 +287,8 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     for p in range(self_pairs.shape[0]):
         la, lb = self_pairs[p, 0], self_pairs[p, 1]
         if not _points_within(lanes, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
+            continue
+        if _pair_clear(lanes, p, q_lanes, pair_offset, pair_slot, pair_low, pair_step, pair_count, pair_gap):
             continue
         _ensure_placed(lanes, la, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
         _ensure_placed(lanes, lb, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
