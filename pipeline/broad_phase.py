@@ -29,7 +29,7 @@ import fcl
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from robonav.pipeline.broad_phase_kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE, clearance_lower_bound
+from robonav.pipeline.broad_phase_kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE
 from robonav.pipeline.broad_phase_lanes import (
     LANES,
     LaneWorld,
@@ -74,7 +74,6 @@ class SphereBroadPhase:
             raise ValueError(f"padding_m must be finite and >= 0, got {padding_m}")
         self._robot = robot
         self._kin = LinkKinematics.from_robot(robot)
-        self._kin_args = self._kin.arrays()
         model = sphere_model if sphere_model is not None else robot_sphere_model(robot)
         self._model = model
         links = robot.collision_link_names
@@ -100,7 +99,7 @@ class SphereBroadPhase:
             dist = np.linalg.norm(c - mid, axis=1)
             bound_self[li] = float(np.max(dist + self._radii_self[starts[li]:starts[li + 1]], initial=0.0))
             bound_world[li] = float(np.max(dist + self._radii_world[starts[li]:starts[li + 1]], initial=0.0))
-        self._bound_center_link, self._bound_self, self._bound_world = bound_center, bound_self, bound_world
+        self._bound_self, self._bound_world = bound_self, bound_world
         if self_pairs is None:
             ignored = set(robot.adjacent_link_pairs) | {tuple(sorted(p)) for p in robot.config.allowed_collision_pairs}
             self_pairs = [(a, b) for i, a in enumerate(links) for b in links[i + 1:] if tuple(sorted((a, b))) not in ignored]
@@ -116,9 +115,6 @@ class SphereBroadPhase:
                                                  self._link_start, self._self_pairs)
                              if self_pair_tables else _no_pair_tables(self._self_pairs.shape[0]))
         # Scratch buffers (no allocation per call).
-        self._scratch = self._kin.new_buffers()
-        self._sphere_world = np.zeros((self._centers_link.shape[0], 3))
-        self._bound_world_center = np.zeros((n_links, 3))
         dof = robot.dof
         self._lane_scratch = dict(
             cos_lanes=np.zeros((dof, LANES)), sin_lanes=np.zeros((dof, LANES)), q_lanes=np.zeros((dof, LANES)),
@@ -135,7 +131,8 @@ class SphereBroadPhase:
         home = robot.home_position_rad
         self.state_suspect(home)
         self.edge_suspects(home, home, 1.0)
-        self.clearance_lower_bound_m(home)
+        self.suspect_pairs(home)
+        self.clearance_pair_bounds_m(home[None])
 
     # --- world ---------------------------------------------------------------------------------
 
@@ -265,32 +262,22 @@ class SphereBroadPhase:
             radii.append(r)
             owner.append(np.full(len(r), link_index, dtype=np.int64))
             rows.append(np.repeat(skip[None], len(r), axis=0))
-        self._att_center_link = np.vstack(centers).reshape(-1, 3) if centers else np.zeros((0, 3))
+        center_link = np.vstack(centers).reshape(-1, 3) if centers else np.zeros((0, 3))
         self._att_radius = np.concatenate(radii) if radii else np.zeros(0)
         self._att_radius_world = self._att_radius + self._padding_m
-        self._att_link = np.concatenate(owner) if owner else np.zeros(0, dtype=np.int64)
+        att_link = np.concatenate(owner) if owner else np.zeros(0, dtype=np.int64)
         self._att_skip = np.vstack(rows) if rows else np.zeros((0, len(links)), dtype=np.bool_)
-        self._att_world = np.zeros((self._att_radius.shape[0], 3))
-        self._att_center_joint = _to_joint_frame(self._kin, self._att_link, self._att_center_link)
-        self._att_joint = self._link_joint[self._att_link]
+        self._att_center_joint = _to_joint_frame(self._kin, att_link, center_link)
+        self._att_joint = self._link_joint[att_link]
         self._att_lanes = np.zeros((self._att_radius.shape[0], 3, LANES))
         self._refresh_args()
 
     # --- queries -------------------------------------------------------------------------------
 
     def _refresh_args(self) -> None:
-        # Built once per world change: rebuilding the tuple each call would add Python work to
-        # the hot path. Grouped in a few tuples so a call has fewer than 30 arguments: CPython
-        # passes longer argument lists as a *args tuple, and numba cannot inline such a call.
+        # Built once per world change (never per call): the kernels read this one object.
         if not hasattr(self, "_att_lanes") or not hasattr(self, "_has_grid") or not hasattr(self, "_obj_kind"):
             return
-        spheres = (self._centers_link, self._radii_self, self._radii_world, self._link_start, self._bound_center_link,
-                   self._bound_self, self._bound_world, self._self_pairs, self._sphere_world, self._bound_world_center)
-        objects = (self._obj_kind, self._obj_rotation, self._obj_translation, self._obj_param, self._obj_bound)
-        grid = (self._has_grid, self._grid, self._grid_origin, self._grid_voxel, self._grid_box, self._occupied)
-        attached = (self._att_center_link, self._att_radius, self._att_radius_world, self._att_link, self._att_skip,
-                    self._att_world)
-        self._clearance_args = (self._kin_args, self._scratch, spheres, objects, grid, attached)
         parent, joint_type, q_slot, coefficients, base_joint, joint_from_base = self._kin_lane_args
         tables = self._pair_tables
         self._lane_world = LaneWorld(
@@ -342,12 +329,6 @@ class SphereBroadPhase:
     def link_pose_stack(self, q: FloatArray) -> FloatArray:
         """world_from_link (L, 4, 4) of the collision links at `q` (dof,), compiled (`LinkKinematics`)."""
         return self._kin.link_pose_stack(q)
-
-    def clearance_lower_bound_m(self, q: FloatArray) -> float:
-        """A lower bound on the distance from the unpadded robot at `q` (dof,) to the objects and
-        occupied voxels [m]: the spheres contain the bare hulls. Negative when spheres overlap
-        the world, +inf when it is empty; attached spheres count too (their padding left out)."""
-        return float(clearance_lower_bound(np.array(q, dtype=np.float64), *self._clearance_args))
 
     def self_suspect(self, q: FloatArray) -> bool:
         """True if spheres of a self-collision pair touch at `q` (dof,) (the world ignored).

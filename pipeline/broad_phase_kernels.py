@@ -1,8 +1,7 @@
 """Compiled kernels of the sphere broad phase (`broad_phase.SphereBroadPhase` packs their arguments).
 
-Point-to-primitive and point-to-voxel distances for one point, sphere placement from link poses
-and the clearance bound of one state; the per-state and per-edge checks, several states at a
-time, are in `broad_phase_lanes`. The small helpers are inlined into the loops
+Point-to-primitive and point-to-voxel distances for one point; the checks that use them, several
+states at a time, are in `broad_phase_lanes`. The small helpers are inlined into the loops
 (`inline="always"`): a call per sphere would cost more than the arithmetic it does.
 """
 
@@ -13,7 +12,6 @@ import math
 import numba as nb
 import numpy as np
 
-from robonav.pipeline.kinematics_batch import forward_links, joint_trig
 
 BOX, SPHERE, CYLINDER, CAPSULE = 0, 1, 2, 3
 CONTACT_EPS_M = 1e-9
@@ -93,59 +91,3 @@ def touches_voxels(x: float, y: float, z: float, radius: float, occupied, origin
                     if dxy + dz * dz <= r2:
                         return True
     return False
-
-
-@nb.njit(cache=True, inline="always")
-def _place_spheres(link_rotation, link_translation, link_start, centers_link, bound_center_link, sphere_world,
-                   bound_world_center) -> None:  # pragma: no cover (compiled)
-    """World-frame centres of every link's spheres and of its bounding sphere, from the link poses."""
-    for li in range(link_start.shape[0] - 1):
-        # The pose in locals: stores into sphere_world would otherwise force its reload per sphere.
-        r00, r01, r02 = link_rotation[li, 0, 0], link_rotation[li, 0, 1], link_rotation[li, 0, 2]
-        r10, r11, r12 = link_rotation[li, 1, 0], link_rotation[li, 1, 1], link_rotation[li, 1, 2]
-        r20, r21, r22 = link_rotation[li, 2, 0], link_rotation[li, 2, 1], link_rotation[li, 2, 2]
-        tx, ty, tz = link_translation[li, 0], link_translation[li, 1], link_translation[li, 2]
-        cx, cy, cz = bound_center_link[li, 0], bound_center_link[li, 1], bound_center_link[li, 2]
-        bound_world_center[li, 0] = tx + r00 * cx + r01 * cy + r02 * cz
-        bound_world_center[li, 1] = ty + r10 * cx + r11 * cy + r12 * cz
-        bound_world_center[li, 2] = tz + r20 * cx + r21 * cy + r22 * cz
-        for s in range(link_start[li], link_start[li + 1]):
-            cx, cy, cz = centers_link[s, 0], centers_link[s, 1], centers_link[s, 2]
-            sphere_world[s, 0] = tx + r00 * cx + r01 * cy + r02 * cz
-            sphere_world[s, 1] = ty + r10 * cx + r11 * cy + r12 * cz
-            sphere_world[s, 2] = tz + r20 * cx + r21 * cy + r22 * cz
-
-
-@nb.njit(cache=True, inline="always")
-def _place_attached(link_rotation, link_translation, att_link, att_center_link, att_world) -> None:  # pragma: no cover
-    """World-frame centres of the attached spheres, from the poses of the links they ride on."""
-    for a in range(att_link.shape[0]):
-        li = att_link[a]
-        for r in range(3):
-            att_world[a, r] = (link_translation[li, r] + link_rotation[li, r, 0] * att_center_link[a, 0]
-                               + link_rotation[li, r, 1] * att_center_link[a, 1]
-                               + link_rotation[li, r, 2] * att_center_link[a, 2])
-
-
-@nb.njit(cache=True)
-def clearance_lower_bound(q, kin, scratch, spheres, objects, grid_args, attached) -> float:  # pragma: no cover
-    rot_scratch, trans_scratch, link_rotation, link_translation = scratch
-    centers_link, radii_self, _, link_start, bound_center_link, _, _, _, sphere_world, bound_world_center = spheres
-    obj_kind, obj_rotation, obj_translation, obj_param, _ = objects
-    has_grid, grid, grid_origin, grid_voxel, grid_box, _ = grid_args
-    att_center_link, att_radius, _, att_link, _, att_world = attached
-    forward_links(q, joint_trig(q), 0, kin[0], kin[1], kin[2], kin[3], kin[4], kin[5], kin[6], kin[7], kin[8],
-                  kin[9], kin[10], kin[11], rot_scratch, trans_scratch, link_rotation, link_translation)
-    best = math.inf
-    _place_spheres(link_rotation, link_translation, link_start, centers_link, bound_center_link, sphere_world,
-                   bound_world_center)
-    _place_attached(link_rotation, link_translation, att_link, att_center_link, att_world)
-    for points, radii in ((sphere_world, radii_self), (att_world, att_radius)):
-        for s in range(radii.shape[0]):
-            x, y, z = points[s, 0], points[s, 1], points[s, 2]
-            for k in range(obj_kind.shape[0]):
-                best = min(best, object_distance(x, y, z, k, obj_kind, obj_rotation, obj_translation, obj_param)
-                           - radii[s])
-            if has_grid:
-                best = min(best, voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) - radii[s])
-    return best

@@ -169,7 +169,7 @@ def test_voxels_conservative_and_world_answers_equal(panda: RobotModel) -> None:
     assert [fast.in_collision(q) for q in qs] == slow_answers
     broad = fast._broad_phase  # noqa: SLF001
     assert all(broad.state_suspect(q) for q, hit in zip(qs, slow_answers) if hit)
-    assert all(broad.clearance_lower_bound_m(q) <= slow.clearance_m(q) + 1e-9 for q in qs[:40])
+    assert all(broad.clearance_pair_bounds_m(q)[0].min() <= slow.clearance_m(q) + 1e-9 for q in qs[:40])
     fast.clear_octree()
     assert not fast.in_collision(panda.home_position_rad)
     assert not broad.state_suspect(panda.home_position_rad)
@@ -184,7 +184,7 @@ def test_clearance_lower_bound_and_min_clearance(panda: RobotModel,
     broad = fast._broad_phase  # noqa: SLF001
     qs = _random_states(panda, 200, seed=15)
     exact = np.array([slow.clearance_m(q) for q in qs])
-    bounds = np.array([broad.clearance_lower_bound_m(q) for q in qs])
+    bounds = np.array([broad.clearance_pair_bounds_m(q)[0].min() for q in qs])
     assert np.all(bounds <= exact + 1e-9)
     assert np.any(exact > 0) and np.median(exact - bounds) < 0.05  # a bound, and a useful one
     queries = {"fast": 0, "slow": 0}
@@ -203,7 +203,7 @@ def test_clearance_lower_bound_and_min_clearance(panda: RobotModel,
     assert queries["fast"] < queries["slow"] / 10
     path = qs[:3]
     assert fast.path_clearance_m(path, 0.2) == slow.path_clearance_m(path, 0.2)
-    assert SphereBroadPhase(panda).clearance_lower_bound_m(panda.home_position_rad) == np.inf  # empty world
+    assert SphereBroadPhase(panda).clearance_pair_bounds_m(panda.home_position_rad)[0].min() == np.inf  # empty world
 
 
 def test_edge_suspects_are_the_suspect_states_of_the_edge(panda: RobotModel,
