@@ -34,7 +34,7 @@ from robonav.pipeline.broad_phase_kernels import (
     touches_voxels,
     voxel_distance,
 )
-from robonav.pipeline.kinematics_batch import forward_joints_lanes
+from robonav.pipeline.kinematics_batch import forward_joints_lanes, link_pose_from_lane
 from robonav.pipeline.self_pair_tables import ROUNDING_GUARD_M
 
 LANES = 16
@@ -420,18 +420,6 @@ def edge_suspect_steps(a, b, resolution, first_only, out, queue, world: LaneWorl
     return count, steps
 
 
-@nb.njit(cache=True, inline="always")
-def _link_pose_lane0(frames, j: int, li: int, rotation, translation, out, row: int) -> None:  # pragma: no cover
-    """out[row] = world_from_link (4, 4) of collision link li, hanging from joint j, in lane 0."""
-    for r in range(3):
-        f0, f1, f2 = frames[j, 3 * r, 0], frames[j, 3 * r + 1, 0], frames[j, 3 * r + 2, 0]
-        for c in range(3):
-            out[row, r, c] = f0 * rotation[li, 0, c] + f1 * rotation[li, 1, c] + f2 * rotation[li, 2, c]
-        out[row, r, 3] = frames[j, 9 + r, 0] + f0 * translation[li, 0] + f1 * translation[li, 1] + f2 * translation[li, 2]
-        out[row, 3, r] = 0.0
-    out[row, 3, 3] = 1.0
-
-
 @nb.njit(cache=True, fastmath={"contract"})
 def suspect_pairs_of_state(q, world: LaneWorld, object_flags, voxel_flags, self_flags,
                            world_from_link) -> None:  # pragma: no cover (compiled)
@@ -463,8 +451,8 @@ def suspect_pairs_of_state(q, world: LaneWorld, object_flags, voxel_flags, self_
         j = link_joint[li]
         _place_lanes(1, frames, j, world.bound_center_joint, li, li + 1, bound_lanes)
         _place_lanes(1, frames, j, world.centers_joint, link_start[li], link_start[li + 1], sphere_lanes)
-        _link_pose_lane0(frames, j, li, world.joint_from_link_rotation, world.joint_from_link_translation,
-                         world_from_link, li)
+        link_pose_from_lane(frames, j, li, world.joint_from_link_rotation, world.joint_from_link_translation,
+                            world_from_link, li, 0)
         for k in range(obj_kind.shape[0]):
             object_flags[li, k] = False
             _object_distance_lanes(1, bound_lanes, li, k, obj_kind, obj_rotation, obj_translation, obj_param, distance)
@@ -527,8 +515,8 @@ def clearance_pair_bounds(states, world: LaneWorld, bounds, world_from_link) -> 
                              world.coefficients, world.base_joint, world.joint_from_base, frames)
         for li in range(link_start.shape[0] - 1):
             j = link_joint[li]
-            _link_pose_lane0(frames, j, li, world.joint_from_link_rotation, world.joint_from_link_translation,
-                             world_from_link[m], li)
+            link_pose_from_lane(frames, j, li, world.joint_from_link_rotation, world.joint_from_link_translation,
+                                world_from_link[m], li, 0)
             _place_lanes(1, frames, j, world.centers_joint, link_start[li], link_start[li + 1], sphere_lanes)
             for k in range(n_objects + 1):
                 bounds[m, li, k] = math.inf

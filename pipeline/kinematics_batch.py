@@ -7,8 +7,10 @@ form exists because the sphere broad phase (`pipeline/broad_phase.py`) needs lin
 one numba call per state or edge: a Python round trip to Pinocchio (`link_pose_stack`) costs
 about 10 us per state, more than the whole compiled sphere check.
 
-Poses are stored as a rotation (3, 3) and a translation (3,) per link, both world_from_link, so
-compiled callers can place link-frame points without building 4x4 matrices.
+Several states go through at once as the lanes of the innermost array axis
+(`forward_joints_lanes`): each joint's frame is a row-major rotation (9) and a translation (3)
+per lane, so compiled callers place joint-frame points without building 4x4 matrices, and one
+state is a single lane.
 """
 
 from __future__ import annotations
@@ -141,36 +143,26 @@ class LinkKinematics:
     def dof(self) -> int:
         return int(np.max(self.q_slot)) + 1
 
-    def new_buffers(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        """Scratch (J + 3, 3, 3), (J + 3, 3) and output (L, 3, 3), (L, 3) arrays for `forward_links`."""
-        n_joints, n_links = self.parent.shape[0], self.link_count
-        return (np.zeros((n_joints + 3, 3, 3)), np.zeros((n_joints + 3, 3)), np.zeros((n_links, 3, 3)),
-                np.zeros((n_links, 3)))
-
     def link_pose_stack(self, q: FloatArray) -> FloatArray:
         """world_from_link (L, 4, 4) of the collision links at `q` (dof,); the compiled twin of
         `RobotModel.link_pose_stack` (for tests and callers outside compiled code)."""
         return self.link_poses_batch(np.asarray(q, dtype=np.float64).reshape(1, -1))[0]
 
     def link_poses_batch(self, qs: FloatArray) -> FloatArray:
-        """world_from_link (M, L, 4, 4) of the collision links for each row of `qs` (M, dof)."""
+        """world_from_link (M, L, 4, 4) of the collision links for each row of `qs` (M, dof),
+        the M states as the lanes of one `forward_joints_lanes` pass."""
         arr = np.ascontiguousarray(qs, dtype=np.float64)
         dof = self.dof
         if arr.ndim != 2 or arr.shape[1] != dof:
             raise ValueError(f"qs must have shape (M, {dof}), got shape {arr.shape}")
         out = np.zeros((arr.shape[0], self.link_count, 4, 4))
-        _poses_batch(arr, *self.arrays(), out)
+        _link_poses(arr, *self.lane_arrays(), self.link_joint, self.joint_from_link_rotation,
+                    self.joint_from_link_translation_m, out)
         return out
 
-    def arrays(self) -> tuple:
-        """The arguments `forward_links` takes after `q`, in order (for compiled callers)."""
-        return (self.parent, self.parent_from_joint_rotation, self.parent_from_joint_translation_m,
-                self.joint_type, self.joint_axis, self.q_slot, self.link_joint, self.joint_from_link_rotation,
-                self.joint_from_link_translation_m, self.base_joint, self.joint_from_base_rotation,
-                self.joint_from_base_translation_m)
-
     def lane_arrays(self) -> tuple:
-        """The arguments `forward_joints_lanes` takes after the lane inputs, in order.
+        """The arguments `forward_joints_lanes` takes after the lane inputs, in order (computed
+        once: every `link_pose_stack` call passes them).
 
         Per joint, 33 coefficients: A, B, C (each a row-major 3x3), t (3,) and d (3,), such that
         parent_from_joint(q) has rotation A + sin(q) B + (1 - cos(q)) C and translation t for a
@@ -178,6 +170,8 @@ class LinkKinematics:
         translation t + q d for a prismatic one. Joint 0 carries world_from_root when the base
         link hangs from the universe (then every frame comes out in the world frame directly).
         """
+        if "_lane_arrays" in self.__dict__:
+            return self.__dict__["_lane_arrays"]
         n_joints = self.parent.shape[0]
         coefficients = np.zeros((n_joints, 33))
         for j in range(1, n_joints):
@@ -198,7 +192,9 @@ class LinkKinematics:
         coefficients[0, 0:9] = world_from_root[:3, :3].ravel()
         coefficients[0, 27:30] = world_from_root[:3, 3]
         joint_from_base = np.concatenate([self.joint_from_base_rotation.ravel(), self.joint_from_base_translation_m])
-        return self.parent, self.joint_type, self.q_slot, coefficients, self.base_joint, joint_from_base
+        arrays = (self.parent, self.joint_type, self.q_slot, coefficients, self.base_joint, joint_from_base)
+        self.__dict__["_lane_arrays"] = arrays  # a frozen dataclass: the cache bypasses __setattr__
+        return arrays
 
     def new_lane_frames(self, lanes: int) -> FloatArray:
         """Output buffer (J, 12, lanes) of `forward_joints_lanes`."""
@@ -219,149 +215,6 @@ class LinkKinematics:
         out[:, :, :3, 3] = frames[:, 9:, :].transpose(2, 0, 1)
         out[:, :, 3, 3] = 1.0
         return out
-
-
-@nb.njit(cache=True, inline="always")
-def _compose(a_rotation: FloatArray, a_row: int, a_translation: FloatArray, b_rotation: FloatArray, b_row: int,
-             b_translation: FloatArray, out_rotation: FloatArray, out_row: int, out_translation: FloatArray) -> None:
-    """out[out_row] = a[a_row] @ b[b_row] for stacks of rigid transforms given as rotations (N, 3, 3)
-    and translations (N, 3); the output row may not be an input row.
-
-    Rows are indexed rather than passed as views: in compiled code every view of an array is a
-    reference-counted object, and forward kinematics took a third longer through them. Operands
-    are read into locals first, since the compiler cannot prove the output aliases neither."""
-    b00, b01, b02 = b_rotation[b_row, 0, 0], b_rotation[b_row, 0, 1], b_rotation[b_row, 0, 2]
-    b10, b11, b12 = b_rotation[b_row, 1, 0], b_rotation[b_row, 1, 1], b_rotation[b_row, 1, 2]
-    b20, b21, b22 = b_rotation[b_row, 2, 0], b_rotation[b_row, 2, 1], b_rotation[b_row, 2, 2]
-    bx, by, bz = b_translation[b_row, 0], b_translation[b_row, 1], b_translation[b_row, 2]
-    for r in range(3):
-        a0, a1, a2 = a_rotation[a_row, r, 0], a_rotation[a_row, r, 1], a_rotation[a_row, r, 2]
-        at = a_translation[a_row, r]
-        out_rotation[out_row, r, 0] = a0 * b00 + a1 * b10 + a2 * b20
-        out_rotation[out_row, r, 1] = a0 * b01 + a1 * b11 + a2 * b21
-        out_rotation[out_row, r, 2] = a0 * b02 + a1 * b12 + a2 * b22
-        out_translation[out_row, r] = at + a0 * bx + a1 * by + a2 * bz
-
-
-@nb.njit(cache=True, nogil=True)
-def joint_trig(q: FloatArray) -> FloatArray:
-    """The (1, 2, dof) table `forward_links` reads for one state: cos(q) and sin(q)."""
-    trig = np.empty((1, 2, q.shape[0]))
-    for i in range(q.shape[0]):
-        trig[0, 0, i], trig[0, 1, i] = np.cos(q[i]), np.sin(q[i])
-    return trig
-
-
-@nb.njit(cache=True, nogil=True)
-def forward_links(
-    q: FloatArray,
-    trig: FloatArray,
-    row: int,
-    parent: IntArray,
-    parent_from_joint_rotation: FloatArray,
-    parent_from_joint_translation_m: FloatArray,
-    joint_type: IntArray,
-    joint_axis: FloatArray,
-    q_slot: IntArray,
-    link_joint: IntArray,
-    joint_from_link_rotation: FloatArray,
-    joint_from_link_translation_m: FloatArray,
-    base_joint: int,
-    joint_from_base_rotation: FloatArray,
-    joint_from_base_translation_m: FloatArray,
-    root_from_joint_rotation: FloatArray,
-    root_from_joint_translation_m: FloatArray,
-    world_from_link_rotation: FloatArray,
-    world_from_link_translation_m: FloatArray,
-) -> None:
-    """Compiled forward kinematics: world_from_link of every collision link at `q`.
-
-    The joints' cosines and sines come in `trig` (`joint_trig(q)` for one state): along an edge
-    they follow by a rotation per step instead of a sine and a cosine per joint and state, which
-    were a third of the kinematics' time (`broad_phase_kernels.edge_suspect_steps`).
-
-    Args:
-        q: (dof,) configuration in `RobotModel.joint_names` order [rad or m].
-        trig: (M, 2, dof) with trig[row, 0] = cos(q) and trig[row, 1] = sin(q).
-        row: The row of `trig` that belongs to `q`.
-        parent ... joint_from_base_translation_m: `LinkKinematics.arrays()`.
-        root_from_joint_rotation: (J + 3, 3, 3) scratch, overwritten (three spare rows for temporaries).
-        root_from_joint_translation_m: (J + 3, 3) scratch, overwritten.
-        world_from_link_rotation: (L, 3, 3) output.
-        world_from_link_translation_m: (L, 3) output [m].
-    """
-    n_joints = parent.shape[0]
-    # Spare scratch rows hold temporaries, so a call allocates nothing.
-    motion, tmp, world = n_joints, n_joints + 1, n_joints + 2
-    rot, trans = root_from_joint_rotation, root_from_joint_translation_m
-    for r in range(3):
-        for c in range(3):
-            rot[0, r, c] = 1.0 if r == c else 0.0
-        trans[0, r] = 0.0
-    for j in range(1, n_joints):
-        value = q[q_slot[j]]
-        ax, ay, az = joint_axis[j, 0], joint_axis[j, 1], joint_axis[j, 2]
-        # motion: a rotation about, or a translation along, the joint axis.
-        if joint_type[j] == REVOLUTE:
-            c, s = trig[row, 0, q_slot[j]], trig[row, 1, q_slot[j]]
-            v = 1.0 - c
-            rot[motion, 0, 0] = c + ax * ax * v
-            rot[motion, 0, 1] = ax * ay * v - az * s
-            rot[motion, 0, 2] = ax * az * v + ay * s
-            rot[motion, 1, 0] = ay * ax * v + az * s
-            rot[motion, 1, 1] = c + ay * ay * v
-            rot[motion, 1, 2] = ay * az * v - ax * s
-            rot[motion, 2, 0] = az * ax * v - ay * s
-            rot[motion, 2, 1] = az * ay * v + ax * s
-            rot[motion, 2, 2] = c + az * az * v
-            trans[motion, 0] = trans[motion, 1] = trans[motion, 2] = 0.0
-        else:
-            for r in range(3):
-                for cc in range(3):
-                    rot[motion, r, cc] = 1.0 if r == cc else 0.0
-            trans[motion, 0], trans[motion, 1], trans[motion, 2] = ax * value, ay * value, az * value
-        # parent_from_joint(q) = placement @ motion, then root_from_joint = root_from_parent @ that.
-        _compose(parent_from_joint_rotation, j, parent_from_joint_translation_m, rot, motion, trans, rot, tmp, trans)
-        _compose(rot, parent[j], trans, rot, tmp, trans, rot, j, trans)
-    # world_from_root = inverse(root_from_base): the base link's frame is the world frame.
-    for r in range(3):
-        for cc in range(3):
-            rot[motion, r, cc] = joint_from_base_rotation[r, cc]
-        trans[motion, r] = joint_from_base_translation_m[r]
-    _compose(rot, base_joint, trans, rot, motion, trans, rot, tmp, trans)
-    for r in range(3):
-        for cc in range(3):
-            rot[world, r, cc] = rot[tmp, cc, r]
-    for r in range(3):
-        trans[world, r] = -(rot[world, r, 0] * trans[tmp, 0] + rot[world, r, 1] * trans[tmp, 1]
-                            + rot[world, r, 2] * trans[tmp, 2])
-    for link in range(link_joint.shape[0]):
-        _compose(rot, link_joint[link], trans, joint_from_link_rotation, link, joint_from_link_translation_m,
-                 rot, tmp, trans)
-        _compose(rot, world, trans, rot, tmp, trans, world_from_link_rotation, link, world_from_link_translation_m)
-
-
-@nb.njit(cache=True, nogil=True)
-def _poses_batch(qs, parent, parent_from_joint_rotation, parent_from_joint_translation_m, joint_type, joint_axis,
-                 q_slot, link_joint, joint_from_link_rotation, joint_from_link_translation_m, base_joint,
-                 joint_from_base_rotation, joint_from_base_translation_m, out):  # pragma: no cover (compiled)
-    n_joints, n_links = parent.shape[0], link_joint.shape[0]
-    scratch_rotation = np.zeros((n_joints + 3, 3, 3))
-    scratch_translation = np.zeros((n_joints + 3, 3))
-    link_rotation = np.zeros((n_links, 3, 3))
-    link_translation = np.zeros((n_links, 3))
-    for m in range(qs.shape[0]):
-        forward_links(qs[m], joint_trig(qs[m]), 0, parent, parent_from_joint_rotation, parent_from_joint_translation_m,
-                      joint_type, joint_axis, q_slot, link_joint, joint_from_link_rotation,
-                      joint_from_link_translation_m, base_joint, joint_from_base_rotation,
-                      joint_from_base_translation_m, scratch_rotation, scratch_translation, link_rotation,
-                      link_translation)
-        for link in range(n_links):
-            for r in range(3):
-                for c in range(3):
-                    out[m, link, r, c] = link_rotation[link, r, c]
-                out[m, link, r, 3] = link_translation[link, r]
-            out[m, link, 3, 3] = 1.0
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -479,3 +332,34 @@ def _compose_lane(frames: FloatArray, p: int, j: int, w: int, m00: float, m01: f
     frames[j, 9, w] = frames[p, 9, w] + p00 * tx + p01 * ty + p02 * tz
     frames[j, 10, w] = frames[p, 10, w] + p10 * tx + p11 * ty + p12 * tz
     frames[j, 11, w] = frames[p, 11, w] + p20 * tx + p21 * ty + p22 * tz
+
+
+@nb.njit(cache=True, inline="always")
+def link_pose_from_lane(frames: FloatArray, j: int, li: int, rotation: FloatArray, translation: FloatArray,
+                        out: FloatArray, row: int, w: int) -> None:  # pragma: no cover (compiled)
+    """out[row] = world_from_link (4, 4) of collision link li, hanging from joint j, in lane w."""
+    for r in range(3):
+        f0, f1, f2 = frames[j, 3 * r, w], frames[j, 3 * r + 1, w], frames[j, 3 * r + 2, w]
+        for c in range(3):
+            out[row, r, c] = f0 * rotation[li, 0, c] + f1 * rotation[li, 1, c] + f2 * rotation[li, 2, c]
+        out[row, r, 3] = frames[j, 9 + r, w] + f0 * translation[li, 0] + f1 * translation[li, 1] + f2 * translation[li, 2]
+        out[row, 3, r] = 0.0
+    out[row, 3, 3] = 1.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _link_poses(qs, parent, joint_type, q_slot, coefficients, base_joint, joint_from_base, link_joint,
+                joint_from_link_rotation, joint_from_link_translation, out) -> None:  # pragma: no cover (compiled)
+    count, dof = qs.shape
+    cos_lanes, sin_lanes, q_lanes = np.empty((dof, count)), np.empty((dof, count)), np.empty((dof, count))
+    for w in range(count):
+        for j in range(dof):
+            value = qs[w, j]
+            cos_lanes[j, w], sin_lanes[j, w], q_lanes[j, w] = np.cos(value), np.sin(value), value
+    frames = np.empty((parent.shape[0], 12, count))
+    forward_joints_lanes(count, cos_lanes, sin_lanes, q_lanes, parent, joint_type, q_slot, coefficients, base_joint,
+                         joint_from_base, frames)
+    for w in range(count):
+        for li in range(link_joint.shape[0]):
+            link_pose_from_lane(frames, link_joint[li], li, joint_from_link_rotation, joint_from_link_translation,
+                                out[w], li, w)
