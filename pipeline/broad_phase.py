@@ -30,14 +30,8 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from robonav.pipeline.broad_phase_kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE
-from robonav.pipeline.broad_phase_lanes import (
-    LANES,
-    LaneWorld,
-    clearance_pair_bounds,
-    edge_suspect_steps,
-    state_suspect_lanes,
-    suspect_pairs_of_state,
-)
+from robonav.pipeline.broad_phase_lanes import LANES, LaneWorld, edge_suspect_steps, state_suspect_lanes
+from robonav.pipeline.broad_phase_pairs import clearance_pair_bounds, suspect_pairs_of_state
 from robonav.pipeline.kinematics_batch import LinkKinematics
 from robonav.pipeline.link_geometry import grow_hull
 from robonav.pipeline.robot import RobotModel

@@ -10,7 +10,6 @@ from __future__ import annotations
 import math
 
 import numba as nb
-import numpy as np
 
 
 BOX, SPHERE, CYLINDER, CAPSULE = 0, 1, 2, 3

@@ -34,7 +34,7 @@ from robonav.pipeline.broad_phase_kernels import (
     touches_voxels,
     voxel_distance,
 )
-from robonav.pipeline.kinematics_batch import forward_joints_lanes, link_pose_from_lane
+from robonav.pipeline.kinematics_batch import forward_joints_lanes
 from robonav.pipeline.self_pair_tables import ROUNDING_GUARD_M
 
 LANES = 16
@@ -87,7 +87,7 @@ structref.define_boxing(LaneWorldType, LaneWorld)
 
 
 @nb.njit(cache=True, inline="always")
-def _object_distance_lanes(n: int, points, row: int, k: int, kind, rotation, translation, param,
+def object_distance_lanes(n: int, points, row: int, k: int, kind, rotation, translation, param,
                            out) -> None:  # pragma: no cover (compiled)
     """out[w] = signed distance from points[row, :, w] to object k [m], for the n lanes."""
     ox, oy, oz = translation[k, 0], translation[k, 1], translation[k, 2]
@@ -144,7 +144,7 @@ def _flag_within(n: int, distance, limit: float, flags) -> None:  # pragma: no c
 
 
 @nb.njit(cache=True, inline="always")
-def _points_within(n: int, points_a, i: int, points_b, j: int, reach: float, out) -> bool:  # pragma: no cover
+def points_within(n: int, points_a, i: int, points_b, j: int, reach: float, out) -> bool:  # pragma: no cover
     """out[w] = points_a[i, :, w] and points_b[j, :, w] are within `reach` (+ contact epsilon); any of them."""
     r = reach + CONTACT_EPS_M
     r2 = r * r
@@ -187,7 +187,7 @@ def _all_set(n: int, flags) -> bool:  # pragma: no cover (compiled)
 
 
 @nb.njit(cache=True, inline="always")
-def _place_lanes(n: int, frames, joint: int, centers_joint, first: int, end: int, out) -> None:  # pragma: no cover
+def place_lanes(n: int, frames, joint: int, centers_joint, first: int, end: int, out) -> None:  # pragma: no cover
     """out[s, :, w] = world position of centers_joint[s] (joint frame) for s in [first, end)."""
     for s in range(first, end):
         cx, cy, cz = centers_joint[s, 0], centers_joint[s, 1], centers_joint[s, 2]
@@ -202,7 +202,7 @@ def _ensure_placed(n: int, li: int, placed, frames, link_joint, centers_joint, l
                    sphere_lanes) -> None:  # pragma: no cover (compiled)
     # Spheres are placed per link on first need: a link whose bound touches nothing needs none.
     if not placed[li]:
-        _place_lanes(n, frames, link_joint[li], centers_joint, link_start[li], link_start[li + 1], sphere_lanes)
+        place_lanes(n, frames, link_joint[li], centers_joint, link_start[li], link_start[li + 1], sphere_lanes)
         placed[li] = True
 
 
@@ -245,7 +245,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
         flags[w] = False
     for li in range(n_links):
         placed[li] = False
-        _place_lanes(lanes, frames, link_joint[li], bound_center_joint, li, li + 1, bound_lanes)
+        place_lanes(lanes, frames, link_joint[li], bound_center_joint, li, li + 1, bound_lanes)
     # Robot vs primitives: link bounding sphere first, then the link's spheres.
     for li in range(n_links):
         for k in range(obj_kind.shape[0]):
@@ -258,12 +258,12 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
                 close |= dx * dx + dy * dy + dz * dz <= r2
             if not close:
                 continue
-            _object_distance_lanes(lanes, bound_lanes, li, k, obj_kind, obj_rotation, obj_translation, obj_param, distance)
+            object_distance_lanes(lanes, bound_lanes, li, k, obj_kind, obj_rotation, obj_translation, obj_param, distance)
             if not _any_within(lanes, distance, bound_world[li]):
                 continue
             _ensure_placed(lanes, li, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
             for s in range(link_start[li], link_start[li + 1]):
-                _object_distance_lanes(lanes, sphere_lanes, s, k, obj_kind, obj_rotation, obj_translation, obj_param,
+                object_distance_lanes(lanes, sphere_lanes, s, k, obj_kind, obj_rotation, obj_translation, obj_param,
                                        distance)
                 _flag_within(lanes, distance, radii_world[s] + CONTACT_EPS_M, flags)
             if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
@@ -286,7 +286,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     # Self-collision, unpadded.
     for p in range(self_pairs.shape[0]):
         la, lb = self_pairs[p, 0], self_pairs[p, 1]
-        if not _points_within(lanes, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
+        if not points_within(lanes, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
             continue
         if _pair_clear(lanes, p, q_lanes, pair_offset, pair_slot, pair_low, pair_step, pair_count, pair_gap):
             continue
@@ -295,10 +295,10 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
         for sa in range(link_start[la], link_start[la + 1]):
             # Against the other link's bounding sphere first: most spheres of a pair whose
             # bounds overlap are far from the other link.
-            if not _points_within(lanes, sphere_lanes, sa, bound_lanes, lb, radii_self[sa] + bound_self[lb], near):
+            if not points_within(lanes, sphere_lanes, sa, bound_lanes, lb, radii_self[sa] + bound_self[lb], near):
                 continue
             for sb in range(link_start[lb], link_start[lb + 1]):
-                if _points_within(lanes, sphere_lanes, sa, sphere_lanes, sb, radii_self[sa] + radii_self[sb], near):
+                if points_within(lanes, sphere_lanes, sa, sphere_lanes, sb, radii_self[sa] + radii_self[sb], near):
                     for w in range(lanes):
                         flags[w] |= near[w]
         if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
@@ -308,7 +308,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     if n_attached == 0:
         return
     for a in range(n_attached):
-        _place_lanes(lanes, frames, att_joint[a], att_center_joint, a, a + 1, att_lanes)
+        place_lanes(lanes, frames, att_joint[a], att_center_joint, a, a + 1, att_lanes)
     for w in range(lanes):
         for a in range(n_attached):
             if flags[w]:
@@ -418,114 +418,3 @@ def edge_suspect_steps(a, b, resolution, first_only, out, queue, world: LaneWorl
                 if first_only:
                     return count, steps
     return count, steps
-
-
-@nb.njit(cache=True, fastmath={"contract"})
-def suspect_pairs_of_state(q, world: LaneWorld, object_flags, voxel_flags, self_flags,
-                           world_from_link) -> None:  # pragma: no cover (compiled)
-    """Which pairs' spheres are within contact at the one state `q` (dof,), and the link poses.
-
-    The pairs FCL must look at, and no others: spheres that touch nothing clear their link.
-
-    Args:
-        q: (dof,) state.
-        world: The robot and scene (`LaneWorld`).
-        object_flags: (L, K) bool output: link l's spheres touch object k.
-        voxel_flags: (L,) bool output: link l's spheres touch an occupied voxel.
-        self_flags: (P,) bool output: the spheres of self-collision pair p touch.
-        world_from_link: (L, 4, 4) output: the collision links' poses.
-    """
-    cos_lanes, sin_lanes, q_lanes = world.cos_lanes, world.sin_lanes, world.q_lanes
-    for j in range(q.shape[0]):
-        cos_lanes[j, 0], sin_lanes[j, 0], q_lanes[j, 0] = math.cos(q[j]), math.sin(q[j]), q[j]
-    frames, sphere_lanes, bound_lanes, distance = world.frames, world.sphere_lanes, world.bound_lanes, world.distance
-    near = world.near
-    link_start, link_joint, radii_world, radii_self = world.link_start, world.link_joint, world.radii_world, world.radii_self
-    bound_world, bound_self, self_pairs = world.bound_world, world.bound_self, world.self_pairs
-    obj_kind, obj_rotation, obj_translation, obj_param = world.obj_kind, world.obj_rotation, world.obj_translation, world.obj_param
-    grid, grid_origin, grid_voxel, grid_box, occupied = world.grid, world.grid_origin, world.grid_voxel, world.grid_box, world.occupied
-    forward_joints_lanes(1, cos_lanes, sin_lanes, q_lanes, world.parent, world.joint_type, world.q_slot,
-                         world.coefficients, world.base_joint, world.joint_from_base, frames)
-    n_links = link_start.shape[0] - 1
-    for li in range(n_links):
-        j = link_joint[li]
-        _place_lanes(1, frames, j, world.bound_center_joint, li, li + 1, bound_lanes)
-        _place_lanes(1, frames, j, world.centers_joint, link_start[li], link_start[li + 1], sphere_lanes)
-        link_pose_from_lane(frames, j, li, world.joint_from_link_rotation, world.joint_from_link_translation,
-                            world_from_link, li, 0)
-        for k in range(obj_kind.shape[0]):
-            object_flags[li, k] = False
-            _object_distance_lanes(1, bound_lanes, li, k, obj_kind, obj_rotation, obj_translation, obj_param, distance)
-            if distance[0] > bound_world[li]:
-                continue
-            for s in range(link_start[li], link_start[li + 1]):
-                _object_distance_lanes(1, sphere_lanes, s, k, obj_kind, obj_rotation, obj_translation, obj_param,
-                                       distance)
-                if distance[0] <= radii_world[s] + CONTACT_EPS_M:
-                    object_flags[li, k] = True
-                    break
-        voxel_flags[li] = False
-        if world.has_grid and voxel_distance(bound_lanes[li, 0, 0], bound_lanes[li, 1, 0], bound_lanes[li, 2, 0], grid,
-                                             grid_origin, grid_voxel, grid_box) <= bound_world[li]:
-            for s in range(link_start[li], link_start[li + 1]):
-                x, y, z = sphere_lanes[s, 0, 0], sphere_lanes[s, 1, 0], sphere_lanes[s, 2, 0]
-                reach = radii_world[s] + CONTACT_EPS_M
-                if voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach and touches_voxels(
-                        x, y, z, reach, occupied, grid_origin, grid_voxel):
-                    voxel_flags[li] = True
-                    break
-    for p in range(self_pairs.shape[0]):
-        la, lb = self_pairs[p, 0], self_pairs[p, 1]
-        self_flags[p] = False
-        if not _points_within(1, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
-            continue
-        for sa in range(link_start[la], link_start[la + 1]):
-            for sb in range(link_start[lb], link_start[lb + 1]):
-                if _points_within(1, sphere_lanes, sa, sphere_lanes, sb, radii_self[sa] + radii_self[sb], near):
-                    self_flags[p] = True
-                    break
-            if self_flags[p]:
-                break
-
-
-@nb.njit(cache=True)
-def clearance_pair_bounds(states, world: LaneWorld, bounds, world_from_link) -> None:  # pragma: no cover (compiled)
-    """Lower bounds on the distance between each bare collision link and each obstacle, per state.
-
-    The bare spheres contain the bare hulls, so a link is no closer to an obstacle than its
-    nearest sphere's surface; for voxels the distance field is itself a lower bound.
-
-    Args:
-        states: (M, dof) states.
-        world: The robot and scene (`LaneWorld`).
-        bounds: (M, L, K + 1) output [m]: column k < K for object k, column K for the occupied
-            voxels (+inf without them); negative where spheres overlap an obstacle.
-        world_from_link: (M, L, 4, 4) output: the collision links' poses per state.
-    """
-    cos_lanes, sin_lanes, q_lanes = world.cos_lanes, world.sin_lanes, world.q_lanes
-    frames, sphere_lanes, distance = world.frames, world.sphere_lanes, world.distance
-    link_start, link_joint, radii_self = world.link_start, world.link_joint, world.radii_self
-    obj_kind, obj_rotation, obj_translation, obj_param = world.obj_kind, world.obj_rotation, world.obj_translation, world.obj_param
-    n_objects = obj_kind.shape[0]
-    for m in range(states.shape[0]):
-        for j in range(states.shape[1]):
-            value = states[m, j]
-            cos_lanes[j, 0], sin_lanes[j, 0], q_lanes[j, 0] = math.cos(value), math.sin(value), value
-        forward_joints_lanes(1, cos_lanes, sin_lanes, q_lanes, world.parent, world.joint_type, world.q_slot,
-                             world.coefficients, world.base_joint, world.joint_from_base, frames)
-        for li in range(link_start.shape[0] - 1):
-            j = link_joint[li]
-            link_pose_from_lane(frames, j, li, world.joint_from_link_rotation, world.joint_from_link_translation,
-                                world_from_link[m], li, 0)
-            _place_lanes(1, frames, j, world.centers_joint, link_start[li], link_start[li + 1], sphere_lanes)
-            for k in range(n_objects + 1):
-                bounds[m, li, k] = math.inf
-            for s in range(link_start[li], link_start[li + 1]):
-                for k in range(n_objects):
-                    _object_distance_lanes(1, sphere_lanes, s, k, obj_kind, obj_rotation, obj_translation, obj_param,
-                                           distance)
-                    bounds[m, li, k] = min(bounds[m, li, k], distance[0] - radii_self[s])
-                if world.has_grid:
-                    gap = voxel_distance(sphere_lanes[s, 0, 0], sphere_lanes[s, 1, 0], sphere_lanes[s, 2, 0],
-                                         world.grid, world.grid_origin, world.grid_voxel, world.grid_box)
-                    bounds[m, li, n_objects] = min(bounds[m, li, n_objects], gap - radii_self[s])
