@@ -26,7 +26,7 @@ from robonav.calibration.report import format_table, report_dict
 from robonav.calibration.sim_collect import CollectOptions, collect
 from robonav.calibration.solve import detect_all, solve
 from robonav.pipeline.config import ConfigError
-from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.transforms import FloatArray
 from robonav.services.config import load_config
 

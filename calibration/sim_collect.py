@@ -34,11 +34,11 @@ from robonav.calibration.dataset import (
 from robonav.calibration.hand_eye import CalibrationError, invert
 from robonav.calibration.sim_scene import CalibrationScene, camera_intrinsics
 from robonav.pipeline.camera import CameraConfig
-from robonav.pipeline.collision import CollisionWorld
+from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.config import require
 from robonav.pipeline.planning.ik import solve_ik
-from robonav.pipeline.robot import RobotModel
-from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.transforms import FloatArray
 
 MIN_VISIBLE_FRACTION = 0.75

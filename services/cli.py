@@ -8,28 +8,28 @@ import os
 import sys
 
 SERVICE_MODULES = {
-    "sim": "robonav.services.sim",
-    "perception": "robonav.services.perception",
-    "planner": "robonav.services.planner",
-    "executor": "robonav.services.executor",
+    "sim": "robonav.services.sim.node",
+    "perception": "robonav.services.perception.node",
+    "planner": "robonav.services.planner.node",
+    "executor": "robonav.services.executor.node",
 }
 
 COMMANDS: dict[str, tuple[str, str]] = {
     # name: (module whose `main(argv) -> int` runs it, help)
-    "up": ("robonav.services.up", "run a Zenoh router and every service until Ctrl-C"),
-    "demo": ("robonav.services.demo", "start everything, plan and execute the demo goals, print a JSON summary"),
-    "bench": ("robonav.services.bench", "benchmarks: `robonav bench plan --problems DIR` (MotionBenchMaker), "
+    "up": ("robonav.services.stack.up", "run a Zenoh router and every service until Ctrl-C"),
+    "demo": ("robonav.services.stack.demo", "start everything, plan and execute the demo goals, print a JSON summary"),
+    "bench": ("robonav.services.bench.plan", "benchmarks: `robonav bench plan --problems DIR` (MotionBenchMaker), "
                                         "`robonav bench executor`"),
-    "plot": ("robonav.services.plot", "plots: `robonav plot trajectory --json PATH_FILE -o out.png`"),
-    "router": ("robonav.services.router", "a Zenoh router for the services (TLS, authentication, access control "
+    "plot": ("robonav.services.tools.plot", "plots: `robonav plot trajectory --json PATH_FILE -o out.png`"),
+    "router": ("robonav.services.stack.router", "a Zenoh router for the services (TLS, authentication, access control "
                                           "from a Zenoh config): `robonav router [--listen tcp/0.0.0.0:7447]`"),
-    "plan": ("robonav.services.plan_cli", "plan (and execute) from the shell: `robonav plan --goal Q... [--race] [--execute]`"),
-    "view": ("robonav.services.view", "a live 3D view in the browser; `--snapshot out.png` writes a picture"),
-    "record": ("robonav.services.record", "record Zenoh traffic into an MCAP file: `robonav record -o run.mcap [KEYEXPR ...]`"),
-    "replay": ("robonav.services.replay", "publish a recording back with its timing: `robonav replay run.mcap [--rate R] [--loop]`"),
+    "plan": ("robonav.services.tools.plan", "plan (and execute) from the shell: `robonav plan --goal Q... [--race] [--execute]`"),
+    "view": ("robonav.services.view.app", "a live 3D view in the browser; `--snapshot out.png` writes a picture"),
+    "record": ("robonav.services.recording.record", "record Zenoh traffic into an MCAP file: `robonav record -o run.mcap [KEYEXPR ...]`"),
+    "replay": ("robonav.services.recording.replay", "publish a recording back with its timing: `robonav replay run.mcap [--rate R] [--loop]`"),
     "calibrate": ("robonav.calibration.cli", "hand-eye calibration: `robonav calibrate collect --out DIR`, "
                                              "`robonav calibrate solve DIR`"),
-    "campaign": ("robonav.services.campaign", "safety campaign on random scenes: `robonav campaign --scenes N --seed S "
+    "campaign": ("robonav.services.campaign.run", "safety campaign on random scenes: `robonav campaign --scenes N --seed S "
                                               "[--json FILE]`"),
 }
 

@@ -13,10 +13,10 @@ from typing import TypeVar
 import numpy as np
 import zenoh
 
-from robonav.pipeline.messages import (ContactsRequest, ContactsResponse, ErrorReply, ExecuteRequest, ExecuteResponse,
+from robonav.pipeline.wire.messages import (ContactsRequest, ContactsResponse, ErrorReply, ExecuteRequest, ExecuteResponse,
                                        ExecutorStatus, JointState, Occupancy, PlanRequest, PlanResponse, SceneRequest,
                                        SceneResponse, StopRequest, StopResponse, decode_reply)
-from robonav.pipeline.wire import Message, ProtocolError
+from robonav.pipeline.wire.codec import Message, ProtocolError
 from robonav.services.common import declare_latched_subscriber
 from robonav.services.keys import Keys
 

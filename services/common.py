@@ -18,8 +18,8 @@ import zenoh
 import zenoh.ext
 
 from robonav.pipeline.config import ConfigError
-from robonav.pipeline.messages import ErrorReply
-from robonav.pipeline.wire import SCHEMA_VERSION, ErrorCode, Message, ProtocolError
+from robonav.pipeline.wire.messages import ErrorReply
+from robonav.pipeline.wire.codec import SCHEMA_VERSION, ErrorCode, Message, ProtocolError
 from robonav.services.config import LimitsConfig, RobonavConfig, ZenohConfig, load_config
 from robonav.services.keys import Keys
 

@@ -15,7 +15,7 @@ from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.config import ConfigError, from_mapping, require
 from robonav.pipeline.perception.config import PerceptionConfig
 from robonav.pipeline.planning.config import PlannerConfig
-from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.transforms import FloatArray
 

@@ -2,14 +2,21 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from robonav.pipeline.robot import RobotModel
-from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.robot.config import RobotConfig
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+"""The repository's top folder."""
+MBM_DIR = Path(os.environ.get("ROBONAV_MBM_DIR") or REPO_ROOT.parent / "shared" / "benchmarks" / "mbm")
+"""The shared MotionBenchMaker Panda problems next to the repository (or where ROBONAV_MBM_DIR points)."""
 
 PANDA_TEST_CONFIG = RobotConfig(
     # Open fingers (the URDF's 0.04 m limit): closed fingers touch each other.

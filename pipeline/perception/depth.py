@@ -14,7 +14,7 @@ import numpy as np
 import numpy.typing as npt
 
 from robonav.pipeline.camera import CameraIntrinsics
-from robonav.pipeline.perception.voxel_kernels import zbuffer
+from robonav.pipeline.perception.maps.voxel_kernels import zbuffer
 
 # A z-buffer value this close to 1 is the cleared background: the tiny renderer clears to
 # 1 - 1 ulp of float32, not exactly 1. With near/far = 0.1/3 m this only hides surfaces

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.transforms import FloatArray
 
 _DAMPING = 1e-2

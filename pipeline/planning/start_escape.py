@@ -26,7 +26,7 @@ from typing import Callable
 
 import numpy as np
 
-from robonav.pipeline.collision import OCCUPANCY, CollisionWorld
+from robonav.pipeline.collision.world import OCCUPANCY, CollisionWorld
 from robonav.pipeline.planning.metrics import interpolate_path
 from robonav.pipeline.transforms import FloatArray
 

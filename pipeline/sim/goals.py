@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from robonav.pipeline.collision import CollisionWorld
-from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.transforms import FloatArray
 

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from robonav.pipeline.config import ConfigError, from_mapping, require
-from robonav.pipeline.planning.mbm import MbmProblem, MbmProblemSet
+from robonav.pipeline.evaluation.mbm import MbmProblem, MbmProblemSet
 from robonav.pipeline.scene import SceneObject
 
 LAYOUTS: tuple[str, ...] = ("table", "shelf", "bin")

@@ -18,7 +18,7 @@ import pybullet as p
 import pybullet_data
 
 from robonav.pipeline.camera import CameraConfig
-from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.rendering import DepthFrame, opengl_projection_matrix, render_depth

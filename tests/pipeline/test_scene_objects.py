@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from robonav.pipeline.collision import CollisionWorld
-from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 
 HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robonav.pipeline.collision import CollisionWorld
+from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.planning.metrics import path_length_rad
 from robonav.pipeline.planning.ompl_planners import (PLANNER_CLASSES, JointSpaceProblem, OmplSpace, plan_ompl, race,
                                                        seed_ompl_once)
 from robonav.pipeline.planning.result import PlanStatus
-from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 
 WALL = (0.45, 0.0, 0.55, 0.8)  # x0, y0, x1, y1: a wall with a gap above it

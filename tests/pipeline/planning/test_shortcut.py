@@ -7,10 +7,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from robonav.pipeline.collision import CollisionWorld
+from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.planning.metrics import interpolate_path, max_joint_step_rad, path_length_rad
 from robonav.pipeline.planning.shortcut import shortcut_path
-from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 
 WALLS = [(0.3, 0.0, 0.35, 0.7), (0.65, 0.3, 0.7, 1.0)]  # an S-shaped corridor

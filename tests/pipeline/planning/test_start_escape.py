@@ -8,12 +8,12 @@ import numpy as np
 import octomap
 import pytest
 
-from robonav.pipeline.collision import OCCUPANCY, CollisionWorld
+from robonav.pipeline.collision.world import OCCUPANCY, CollisionWorld
 from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.planning.metrics import interpolate_path
 from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
 from robonav.pipeline.planning.result import PlanStatus
-from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 
 PADDING_M = 0.05

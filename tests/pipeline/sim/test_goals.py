@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robonav.pipeline.collision import CollisionWorld
-from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import intruder_for_trajectory, perceivable_objects, point_along_path, sample_goal
 from robonav.pipeline.sim.scenes import ClutterConfig, clutter_scene

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 
 from robonav.pipeline.camera import CameraConfig
-from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.noise import NO_LABEL, DepthNoiseConfig

@@ -13,7 +13,7 @@ import pytest
 from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.config import ConfigError, from_mapping
 from robonav.pipeline.perception.depth import points_from_depth
-from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.world import SimWorld, _create_obstacle, opengl_projection_matrix

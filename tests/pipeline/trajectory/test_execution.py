@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.trajectory.execution import (JOINT_STATE_STALE, TRACKING_ERROR, ExecutionStateMachine, Limits,
                                                    WatchdogConfig)
 from robonav.pipeline.trajectory.timing import time_parameterize

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robonav.pipeline.collision import CollisionWorld
-from robonav.pipeline.robot import RobotModel
+from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.trajectory.path_guard import PathGuard, new_voxel_count
 from robonav.services.config import load_config

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.trajectory.stopping import stop_trajectory
 from robonav.pipeline.trajectory.timing import JointTrajectory
 

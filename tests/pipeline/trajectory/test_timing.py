@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from robonav.pipeline.robot_config import RobotConfig
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.trajectory.timing import JointTrajectory, blend_from_state, polyline_deviation, time_parameterize
 
 ROBOT = RobotConfig()

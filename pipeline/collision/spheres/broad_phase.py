@@ -1,0 +1,424 @@
+"""Conservative sphere broad phase for collision checking, compiled with numba (as VAMP does).
+
+Each collision link is covered by spheres (`pipeline/sphere_model.py`); a state is "suspect" when
+any sphere comes within contact of a scene primitive, an occupied voxel, a sphere of another
+link (self-collision pairs of `CollisionWorld`) or an attached sphere. Sphere-free implies
+FCL-free, so a cleared state needs no exact check; a suspect state must be asked of FCL.
+
+Why hand-written numba instead of FCL for this: on MBM `box` problem 1 (Panda, 7 obstacles,
+random states) an FCL check of a state cost ~80 us (Pinocchio FK from Python, numpy culling,
+one python-fcl call per near pair), while a state inside the compiled edge loop (FK, 101
+spheres vs the obstacles, the self pairs; 16 states at a time, `broad_phase_lanes`) costs
+~0.45 us, and a call from Python ~1 us more; a whole 1 rad edge at 0.01 rad (101 states) is
+one call of ~50 us against ~14 ms of FCL for a free edge. FCL stays the exact check for
+suspects, asked only about the pairs whose spheres touch (`suspect_pairs`).
+
+Robot-vs-world spheres are grown so they contain the PADDED hulls FCL uses: `grow_hull` pushes
+vertices out by up to ~1.8x the padding, so each shape's world radii grow by the Hausdorff
+distance from its grown hull to its hull (measured with FCL at construction). Self-collision
+uses the unpadded spheres, as `CollisionWorld` does.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+from collections.abc import Sequence
+
+import fcl
+import numpy as np
+from scipy.ndimage import distance_transform_edt
+
+from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE
+from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld, edge_suspect_steps, state_suspect_lanes
+from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, suspect_pairs_of_state
+from robonav.pipeline.robot.lane_kinematics import LinkKinematics
+from robonav.pipeline.robot.link_geometry import grow_hull
+from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.collision.spheres.self_pair_tables import SelfPairTables, build_self_pair_tables
+from robonav.pipeline.collision.spheres.sphere_model import RobotSphereModel, robot_sphere_model
+from robonav.pipeline.transforms import FloatArray
+
+_MAX_GRID_CELLS = 60_000_000
+
+
+class SphereBroadPhase:
+    """Sphere model of one robot plus the world it is checked against, all precompiled arrays.
+
+    Not thread-safe (it reuses scratch buffers).
+    """
+
+    def __init__(self, robot: RobotModel, *, padding_m: float = 0.0,
+                 self_pairs: Sequence[tuple[str, str]] | None = None,
+                 sphere_model: RobotSphereModel | None = None, self_pair_tables: bool = True) -> None:
+        """Build spheres, kinematics and the self-collision pair list.
+
+        Args:
+            robot: Kinematics and link geometry.
+            padding_m: Robot-vs-world padding of the FCL hulls this must stay conservative to [m].
+            self_pairs: Link pairs checked for self-collision (`CollisionWorld.self_collision_pairs`);
+                None derives them the same way (all pairs minus adjacent and allowed ones).
+            sphere_model: Spheres to use; None builds (or reuses the cached) default cover.
+            self_pair_tables: Skip self pairs where a precomputed gap bound proves their spheres
+                apart (`self_pair_tables`; the answers are the same either way, so False is
+                for testing that).
+        """
+        if not (math.isfinite(padding_m) and padding_m >= 0):
+            raise ValueError(f"padding_m must be finite and >= 0, got {padding_m}")
+        self._robot = robot
+        self._kin = LinkKinematics.from_robot(robot)
+        model = sphere_model if sphere_model is not None else robot_sphere_model(robot)
+        self._model = model
+        links = robot.collision_link_names
+        shapes = [s for link in links for s in robot.link_collision_shapes[link]]
+        growth = np.array([_padded_growth_m(s.hull_vertices, s.hull_triangles, padding_m) for s in shapes])
+        # Fresh writable C arrays: numba compiles one specialisation per array layout/writability,
+        # and a lazy compile triggered from an OMPL worker thread can deadlock on the GIL.
+        self._centers_link = np.array(model.centers_link_m, dtype=np.float64, order="C")
+        self._radii_self = np.array(model.radii_m, dtype=np.float64)
+        self._radii_world = self._radii_self + growth[model.shape_index]
+        self._sphere_link = np.array(model.link_index, dtype=np.int64)
+        n_links = len(links)
+        starts = np.searchsorted(self._sphere_link, np.arange(n_links + 1))
+        self._link_start = starts.astype(np.int64)
+        # One bounding sphere per link (first level of the two-level check).
+        bound_center = np.zeros((n_links, 3))
+        bound_self = np.zeros(n_links)
+        bound_world = np.zeros(n_links)
+        for li in range(n_links):
+            c = self._centers_link[starts[li]:starts[li + 1]]
+            mid = 0.5 * (c.min(axis=0) + c.max(axis=0)) if len(c) else np.zeros(3)
+            bound_center[li] = mid
+            dist = np.linalg.norm(c - mid, axis=1)
+            bound_self[li] = float(np.max(dist + self._radii_self[starts[li]:starts[li + 1]], initial=0.0))
+            bound_world[li] = float(np.max(dist + self._radii_world[starts[li]:starts[li + 1]], initial=0.0))
+        self._bound_self, self._bound_world = bound_self, bound_world
+        if self_pairs is None:
+            ignored = set(robot.adjacent_link_pairs) | {tuple(sorted(p)) for p in robot.config.allowed_collision_pairs}
+            self_pairs = [(a, b) for i, a in enumerate(links) for b in links[i + 1:] if tuple(sorted((a, b))) not in ignored]
+        self._self_pairs = np.array([(links.index(a), links.index(b)) for a, b in self_pairs],
+                                    dtype=np.int64).reshape(-1, 2)
+        self._padding_m = float(padding_m)
+        # The lane kernels place spheres straight from joint frames: link placements folded in.
+        self._link_joint = np.array(self._kin.link_joint, dtype=np.int64)
+        self._centers_joint = _to_joint_frame(self._kin, self._sphere_link, self._centers_link)
+        self._bound_center_joint = _to_joint_frame(self._kin, np.arange(n_links), bound_center)
+        self._kin_lane_args = self._kin.lane_arrays()
+        self._pair_tables = (_cached_pair_tables(robot, self._kin, self._centers_joint, self._radii_self,
+                                                 self._link_start, self._self_pairs)
+                             if self_pair_tables else _no_pair_tables(self._self_pairs.shape[0]))
+        # Scratch buffers (no allocation per call).
+        dof = robot.dof
+        self._lane_scratch = dict(
+            cos_lanes=np.zeros((dof, LANES)), sin_lanes=np.zeros((dof, LANES)), q_lanes=np.zeros((dof, LANES)),
+            flags=np.zeros(LANES, dtype=np.bool_), frames=self._kin.new_lane_frames(LANES),
+            sphere_lanes=np.zeros((self._centers_link.shape[0], 3, LANES)), bound_lanes=np.zeros((n_links, 3, LANES)),
+            placed=np.zeros(n_links, dtype=np.bool_), near=np.zeros(LANES, dtype=np.bool_), distance=np.zeros(LANES))
+        self._step_buffer = np.zeros(1, dtype=np.int64)
+        self._queue = np.zeros((1, 2), dtype=np.int64)
+        self.clear_objects()
+        self.clear_occupancy()
+        self._attached: dict[str, tuple[int, FloatArray, FloatArray, tuple[str, ...]]] = {}
+        self._rebuild_attached()
+        # Compile (or load from numba's cache) now, on the constructing thread.
+        home = robot.home_position_rad
+        self.state_suspect(home)
+        self.edge_suspects(home, home, 1.0)
+        self.suspect_pairs(home)
+        self.clearance_pair_bounds_m(home[None])
+
+    # --- world ---------------------------------------------------------------------------------
+
+    @property
+    def sphere_model(self) -> RobotSphereModel:
+        return self._model
+
+    @property
+    def sphere_count(self) -> int:
+        return int(self._radii_self.shape[0])
+
+    def set_objects(self, objects: Sequence[SceneObject]) -> None:
+        """Replace the obstacles (world frame). A mesh is checked as its local bounding box, which contains it."""
+        kinds, rotations, translations, params, bounds = [], [], [], [], []
+        for obj in objects:
+            pose = obj.world_from_object
+            rotation, translation = pose[:3, :3], pose[:3, 3]
+            if obj.type == "box":
+                kind, param = BOX, 0.5 * np.array(obj.size_m, dtype=np.float64)
+            elif obj.type == "sphere":
+                kind, param = SPHERE, np.array([obj.radius_m, 0.0, 0.0])
+            elif obj.type == "cylinder":
+                kind, param = CYLINDER, np.array([obj.radius_m, 0.5 * obj.length_m, 0.0])
+            elif obj.type == "capsule":
+                kind, param = CAPSULE, np.array([obj.radius_m, 0.5 * obj.length_m, 0.0])
+            else:
+                # Any other shape (meshes) as its local axis-aligned box: conservative.
+                center, half = obj.local_bounds_m
+                kind, param = BOX, np.maximum(np.asarray(half, dtype=np.float64), 1e-9)
+                translation = translation + rotation @ np.asarray(center, dtype=np.float64)
+            kinds.append(kind)
+            rotations.append(rotation)
+            translations.append(translation)
+            params.append(param)
+            extent = float(np.linalg.norm(param)) if kind == BOX else float(param[0] + param[1])
+            bounds.append(extent)
+        self._obj_kind = np.array(kinds, dtype=np.int64)
+        self._obj_rotation = np.array(rotations, dtype=np.float64).reshape(-1, 3, 3)
+        self._obj_translation = np.array(translations, dtype=np.float64).reshape(-1, 3)
+        self._obj_param = np.array(params, dtype=np.float64).reshape(-1, 3)
+        self._obj_bound = np.array(bounds, dtype=np.float64)
+        self._refresh_args()
+
+    def clear_objects(self) -> None:
+        self.set_objects([])
+
+    def set_occupied_voxels(self, centers_m: FloatArray, voxel_size_m: float) -> None:
+        """Replace the occupancy with cubes of side `voxel_size_m` at `centers_m` (N, 3), world frame [m].
+
+        Builds a Euclidean distance field on a grid aligned with the voxels, covering them plus a
+        margin. A lookup at point p in cell c returns edt(c) - |p - centre(c)| - half voxel
+        diagonal, a lower bound on the distance from p to any occupied cube; outside the grid the
+        distance to the occupied cubes' bounding box is used.
+        """
+        centers = np.asarray(centers_m, dtype=np.float64).reshape(-1, 3)
+        if not (math.isfinite(voxel_size_m) and voxel_size_m > 0):
+            raise ValueError(f"voxel_size_m must be finite and > 0, got {voxel_size_m}")
+        if centers.shape[0] == 0:
+            self.clear_occupancy()
+            return
+        margin_cells = int(math.ceil(0.25 / voxel_size_m)) + 2
+        low = centers.min(axis=0)
+        keys = np.round((centers - low) / voxel_size_m).astype(np.int64) + margin_cells
+        dims = keys.max(axis=0) + margin_cells + 1
+        if int(np.prod(dims)) > _MAX_GRID_CELLS:
+            raise ValueError(f"occupancy spans {dims.tolist()} voxels, more than {_MAX_GRID_CELLS} cells")
+        occupied = np.zeros(tuple(dims), dtype=bool)
+        occupied[keys[:, 0], keys[:, 1], keys[:, 2]] = True
+        half_diagonal = 0.5 * math.sqrt(3.0) * voxel_size_m
+        field = distance_transform_edt(~occupied) * voxel_size_m - half_diagonal
+        self._grid = np.ascontiguousarray(field, dtype=np.float64)
+        self._grid_origin = low - margin_cells * voxel_size_m
+        self._grid_voxel = float(voxel_size_m)
+        self._grid_box = np.array([low - 0.5 * voxel_size_m, centers.max(axis=0) + 0.5 * voxel_size_m])
+        self._occupied = occupied
+        self._has_grid = True
+        self._refresh_args()
+
+    def clear_occupancy(self) -> None:
+        self._grid = np.zeros((1, 1, 1))
+        self._grid_origin = np.zeros(3)
+        self._grid_voxel = 1.0
+        self._grid_box = np.zeros((2, 3))
+        self._occupied = np.zeros((1, 1, 1), dtype=np.bool_)
+        self._has_grid = False
+        self._refresh_args()
+
+    def set_attached_spheres(self, name: str, link: str, centers_link_m: FloatArray, radii_m: FloatArray,
+                             touch_links: Sequence[str] = ()) -> None:
+        """Add (or replace) spheres rigid on `link`, e.g. the cover of a grasped object.
+
+        They are checked against the world (padded like the robot) and against robot links
+        other than `link` and `touch_links`.
+
+        Args:
+            name: Key for `remove_attached`.
+            link: A collision link name.
+            centers_link_m: (A, 3) centres in the LINK frame [m].
+            radii_m: (A,) radii [m].
+            touch_links: Links the object may touch (ignored for it).
+        """
+        links = self._robot.collision_link_names
+        for label in (link, *touch_links):
+            if label not in links:
+                raise ValueError(f"'{label}' is not a collision link ({list(links)})")
+        centers = np.asarray(centers_link_m, dtype=np.float64).reshape(-1, 3)
+        radii = np.asarray(radii_m, dtype=np.float64).reshape(-1)
+        if radii.shape[0] != centers.shape[0] or np.any(radii < 0):
+            raise ValueError(f"need one radius >= 0 per centre, got {radii.shape[0]} radii for {centers.shape[0]} centres")
+        self._attached[name] = (links.index(link), centers, radii, tuple(touch_links))
+        self._rebuild_attached()
+
+    def remove_attached(self, name: str) -> None:
+        """Forget attached spheres added under `name` (no-op when absent)."""
+        self._attached.pop(name, None)
+        self._rebuild_attached()
+
+    def _rebuild_attached(self) -> None:
+        links = self._robot.collision_link_names
+        centers, radii, owner, rows = [], [], [], []
+        for link_index, c, r, touch in self._attached.values():
+            skip = np.zeros(len(links), dtype=np.bool_)
+            skip[link_index] = True
+            for t in touch:
+                skip[links.index(t)] = True
+            centers.append(c)
+            radii.append(r)
+            owner.append(np.full(len(r), link_index, dtype=np.int64))
+            rows.append(np.repeat(skip[None], len(r), axis=0))
+        center_link = np.vstack(centers).reshape(-1, 3) if centers else np.zeros((0, 3))
+        self._att_radius = np.concatenate(radii) if radii else np.zeros(0)
+        self._att_radius_world = self._att_radius + self._padding_m
+        att_link = np.concatenate(owner) if owner else np.zeros(0, dtype=np.int64)
+        self._att_skip = np.vstack(rows) if rows else np.zeros((0, len(links)), dtype=np.bool_)
+        self._att_center_joint = _to_joint_frame(self._kin, att_link, center_link)
+        self._att_joint = self._link_joint[att_link]
+        self._att_lanes = np.zeros((self._att_radius.shape[0], 3, LANES))
+        self._refresh_args()
+
+    # --- queries -------------------------------------------------------------------------------
+
+    def _refresh_args(self) -> None:
+        # Built once per world change (never per call): the kernels read this one object.
+        if not hasattr(self, "_att_lanes") or not hasattr(self, "_has_grid") or not hasattr(self, "_obj_kind"):
+            return
+        parent, joint_type, q_slot, coefficients, base_joint, joint_from_base = self._kin_lane_args
+        tables = self._pair_tables
+        self._lane_world = LaneWorld(
+            parent=parent, joint_type=joint_type, q_slot=q_slot, coefficients=coefficients, base_joint=base_joint,
+            joint_from_base=joint_from_base, centers_joint=self._centers_joint, radii_self=self._radii_self,
+            radii_world=self._radii_world, link_start=self._link_start, bound_center_joint=self._bound_center_joint,
+            bound_self=self._bound_self, bound_world=self._bound_world, self_pairs=self._self_pairs,
+            link_joint=self._link_joint, joint_from_link_rotation=self._kin.joint_from_link_rotation,
+            joint_from_link_translation=self._kin.joint_from_link_translation_m, pair_offset=tables.offset,
+            pair_slot=tables.slot, pair_low=tables.low, pair_step=tables.step, pair_count=tables.count,
+            pair_gap=tables.gap_m, obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,
+            obj_translation=self._obj_translation, obj_param=self._obj_param, obj_bound=self._obj_bound,
+            has_grid=self._has_grid, grid=self._grid, grid_origin=self._grid_origin, grid_voxel=self._grid_voxel,
+            grid_box=self._grid_box, occupied=self._occupied, att_center_joint=self._att_center_joint,
+            att_radius=self._att_radius, att_radius_world=self._att_radius_world, att_joint=self._att_joint,
+            att_skip=self._att_skip, att_lanes=self._att_lanes, **self._lane_scratch)
+        n_links = self._link_start.shape[0] - 1
+        self._pair_outputs = (np.zeros((n_links, self._obj_kind.shape[0]), dtype=np.bool_),
+                              np.zeros(n_links, dtype=np.bool_), np.zeros(self._self_pairs.shape[0], dtype=np.bool_),
+                              np.zeros((n_links, 4, 4)))
+
+    def state_suspect(self, q: FloatArray) -> bool:
+        """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free."""
+        return bool(state_suspect_lanes(np.array(q, dtype=np.float64), self._lane_world))
+
+    def suspect_pairs(self, q: FloatArray) -> tuple[np.ndarray, np.ndarray, np.ndarray, FloatArray]:
+        """The pairs whose spheres are within contact at `q` (dof,): only these can collide in FCL.
+
+        Returns:
+            (L, K) bool: collision link l vs object k (`set_objects` order); (L,) bool: link l vs
+            the occupied voxels; (P,) bool: self-collision pair p (the `self_pairs` order); and
+            world_from_link (L, 4, 4) of the collision links. Buffers reused by the next call.
+        """
+        objects, voxels, pairs, poses = self._pair_outputs
+        suspect_pairs_of_state(np.array(q, dtype=np.float64), self._lane_world, objects, voxels, pairs, poses)
+        return objects, voxels, pairs, poses
+
+    def clearance_pair_bounds_m(self, states: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Per state of `states` (M, dof): lower bounds on the distance from each bare collision
+        link to each object and to the occupied voxels, (M, L, K + 1) [m] (column K: the voxels,
+        +inf without them), and the links' poses world_from_link (M, L, 4, 4)."""
+        arr = np.ascontiguousarray(states, dtype=np.float64).reshape(-1, self._robot.dof)
+        n_links = self._link_start.shape[0] - 1
+        bounds = np.empty((arr.shape[0], n_links, self._obj_kind.shape[0] + 1))
+        poses = np.empty((arr.shape[0], n_links, 4, 4))
+        clearance_pair_bounds(arr, self._lane_world, bounds, poses)
+        return bounds, poses
+
+    def link_pose_stack(self, q: FloatArray) -> FloatArray:
+        """world_from_link (L, 4, 4) of the collision links at `q` (dof,), compiled (`LinkKinematics`)."""
+        return self._kin.link_pose_stack(q)
+
+    def self_suspect(self, q: FloatArray) -> bool:
+        """True if spheres of a self-collision pair touch at `q` (dof,) (the world ignored).
+
+        Numpy, not compiled: for occasional probes (`CollisionWorld.sphere_self_overflag`)."""
+        poses = self._robot.link_pose_stack(q)
+        links = self._sphere_link
+        world = np.einsum("sij,sj->si", poses[links, :3, :3], self._centers_link) + poses[links, :3, 3]
+        for la, lb in self._self_pairs:
+            a = slice(self._link_start[la], self._link_start[la + 1])
+            b = slice(self._link_start[lb], self._link_start[lb + 1])
+            gap = np.linalg.norm(world[a, None, :] - world[None, b, :], axis=2)
+            if np.any(gap <= self._radii_self[a, None] + self._radii_self[None, b] + CONTACT_EPS_M):
+                return True
+        return False
+
+    def edge_suspects(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float, *,
+                      first_only: bool = False) -> tuple[np.ndarray, int]:
+        """Suspect states of the straight segment, in `CollisionWorld.motion_valid` order.
+
+        The segment has `steps` = max(1, ceil(max|b - a| / resolution_rad)) intervals; state k is
+        a + (b - a) * (k / steps). They are visited as `motion_valid` does: k = steps (q_b),
+        then the interior in bisection order, then k = 0 (q_a).
+
+        Returns:
+            (M,) int64 step indices k of the suspect states in visiting order (at most one when
+            `first_only`), and `steps`.
+        """
+        # This runs once per tree edge: the step count is left to the compiled code (numpy's
+        # reductions on 7 numbers cost microseconds), and the buffers grow only when too short.
+        a = np.ascontiguousarray(q_a, dtype=np.float64)
+        b = np.ascontiguousarray(q_b, dtype=np.float64)
+        if not resolution_rad > 0 or resolution_rad == math.inf:  # NaN fails the first test
+            raise ValueError(f"resolution_rad must be finite and > 0, got {resolution_rad}")
+        # Plain float and bool: an int would make numba compile another specialisation.
+        resolution_rad, first_only = float(resolution_rad), bool(first_only)
+        count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue,
+                                          self._lane_world)
+        if count < 0:
+            # order (steps + 1 entries) and the FIFO of spans (< 2 * steps + 1 entries) share `_queue`.
+            self._step_buffer = np.zeros(2 * steps + 2, dtype=np.int64)
+            self._queue = np.zeros((2 * steps + 2, 2), dtype=np.int64)
+            count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue,
+                                              self._lane_world)
+        if count == 0:
+            return _NO_STEPS, steps  # most edges: no slice and copy (read-only, shared)
+        return self._step_buffer[:count].copy(), steps
+
+
+_NO_STEPS = np.zeros(0, dtype=np.int64)
+_NO_STEPS.flags.writeable = False
+
+
+_pair_tables_of: weakref.WeakKeyDictionary[RobotModel, dict[bytes, SelfPairTables]] = weakref.WeakKeyDictionary()
+
+
+def _cached_pair_tables(robot: RobotModel, kin: LinkKinematics, centers_joint: FloatArray, radii_m: FloatArray,
+                        link_start: np.ndarray, self_pairs: np.ndarray) -> SelfPairTables:
+    """`build_self_pair_tables`, once per robot, spheres and pair list (~0.5 s for the Panda, and
+    every planning world of a robot has the same)."""
+    key = b"".join(np.ascontiguousarray(x).tobytes() for x in (centers_joint, radii_m, link_start, self_pairs))
+    per_robot = _pair_tables_of.setdefault(robot, {})
+    if key not in per_robot:
+        per_robot[key] = build_self_pair_tables(kin, robot.lower_limits_rad, robot.upper_limits_rad, centers_joint,
+                                                radii_m, link_start, self_pairs)
+    return per_robot[key]
+
+
+def _no_pair_tables(n_pairs: int) -> SelfPairTables:
+    return SelfPairTables(np.full(n_pairs, -1, dtype=np.int64), np.full((n_pairs, 2), -1, dtype=np.int64),
+                          np.zeros((n_pairs, 2)), np.ones((n_pairs, 2)), np.ones((n_pairs, 2), dtype=np.int64),
+                          np.zeros(0))
+
+
+def _to_joint_frame(kin: LinkKinematics, link_index: np.ndarray, points_link: FloatArray) -> FloatArray:
+    """(N, 3) points given in the frames of collision links `link_index` (N,), in their joints' frames."""
+    index = np.asarray(link_index, dtype=np.int64)
+    points = np.asarray(points_link, dtype=np.float64).reshape(-1, 3)
+    rotated = np.einsum("nij,nj->ni", kin.joint_from_link_rotation[index], points)
+    return np.ascontiguousarray(rotated + kin.joint_from_link_translation_m[index])
+
+
+def _padded_growth_m(vertices: FloatArray, triangles: np.ndarray, padding_m: float) -> float:
+    """Hausdorff distance from `grow_hull(hull, padding)` to the hull [m] (>= padding_m), via FCL."""
+    if padding_m <= 0:
+        return 0.0
+    grown, _ = grow_hull(vertices, triangles, padding_m)
+    faces = np.hstack([np.full((len(triangles), 1), 3, dtype=np.int64), triangles]).ravel()
+    hull = fcl.CollisionObject(fcl.Convex(np.ascontiguousarray(vertices), len(triangles), faces), fcl.Transform())
+    request = fcl.DistanceRequest()
+    worst = padding_m
+    point = fcl.CollisionObject(fcl.Sphere(1e-9), fcl.Transform())
+    for v in grown:
+        point.setTranslation(v)
+        worst = max(worst, float(fcl.distance(point, hull, request, fcl.DistanceResult())))
+    return worst + 1e-6
+
+
+# --- compiled core ---------------------------------------------------------------------------------

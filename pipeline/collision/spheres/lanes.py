@@ -1,0 +1,420 @@
+"""The sphere broad phase's per-state and per-edge checks, several states at a time (numba).
+
+A state's check is the same as ever: forward kinematics, every link's spheres placed, each
+sphere against the scene primitives, the occupied voxels, the self-collision pairs' spheres and
+the attached spheres. Here up to `LANES` states go through it together, as the lanes of the
+innermost array axis: forward kinematics, sphere placement and the sphere-primitive and
+sphere-sphere distances are loops over lanes with no branch inside, which the compiler turns
+into SIMD instructions (what VAMP does by hand in C++). Culling stays per link and pair, taken
+when any lane needs the finer test; a lane's answer is the same whatever the other lanes hold.
+
+Sphere centres are stored in their joint's frame (the link placement folded in), so the link
+frames are never formed. The voxel and attached-sphere tests stay per lane: they are rare
+(occupancy maps, grasped objects) and branchy.
+
+An edge's states are checked in `CollisionWorld.motion_valid` order, `LANES` at a time; the
+first lanes of a blocked edge (its end, midpoint, quarter points...) usually flag it at once.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from numba.core import types
+from numba.experimental import structref
+
+from robonav.pipeline.collision.spheres.kernels import (
+    BOX,
+    CONTACT_EPS_M,
+    CYLINDER,
+    SPHERE,
+    object_distance,
+    touches_voxels,
+    voxel_distance,
+)
+from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes
+from robonav.pipeline.collision.spheres.self_pair_tables import ROUNDING_GUARD_M
+
+LANES = 16
+"""States checked together (measured on MBM edges, per state: 4 lanes 0.87 us, 8 0.67, 16 0.59)."""
+
+VECTOR = 4
+"""float64 lanes in one AVX2 vector."""
+
+LANE_WORLD_FIELDS: tuple[str, ...] = (
+    # kinematics (`LinkKinematics.lane_arrays`)
+    "parent", "joint_type", "q_slot", "coefficients", "base_joint", "joint_from_base",
+    # spheres, in their joints' frames
+    "centers_joint", "radii_self", "radii_world", "link_start", "bound_center_joint", "bound_self", "bound_world",
+    "self_pairs", "link_joint", "joint_from_link_rotation", "joint_from_link_translation",
+    # gap bounds of self pairs few joints apart (`self_pair_tables`)
+    "pair_offset", "pair_slot", "pair_low", "pair_step", "pair_count", "pair_gap",
+    # scene primitives
+    "obj_kind", "obj_rotation", "obj_translation", "obj_param", "obj_bound",
+    # occupied voxels: distance field and occupancy grid
+    "has_grid", "grid", "grid_origin", "grid_voxel", "grid_box", "occupied",
+    # attached spheres
+    "att_center_joint", "att_radius", "att_radius_world", "att_joint", "att_skip",
+    # scratch: lane inputs and outputs, frames, placed spheres
+    "cos_lanes", "sin_lanes", "q_lanes", "flags", "frames", "sphere_lanes", "bound_lanes", "placed", "near",
+    "distance", "att_lanes",
+)
+"""What the lane kernels read, as one object: a call from Python unboxes one reference (~0.6 us)
+instead of some 45 arrays (~3 us, more than a 16-state chunk of an edge costs)."""
+
+
+@structref.register
+class LaneWorldType(types.StructRef):
+    def preprocess_fields(self, fields):  # noqa: ANN001, ANN201 (numba's hook)
+        return tuple((name, types.unliteral(kind)) for name, kind in fields)
+
+
+class LaneWorld(structref.StructRefProxy):
+    """The arrays of `LANE_WORLD_FIELDS`, by keyword, in one compiled-code object (rebuilt, never
+    changed, when the scene changes; the scratch buffers are shared between rebuilds)."""
+
+    def __new__(cls, **arrays: object):  # noqa: ANN204
+        missing = set(LANE_WORLD_FIELDS) ^ set(arrays)
+        if missing:
+            raise ValueError(f"LaneWorld fields missing or unknown: {sorted(missing)}")
+        return structref.StructRefProxy.__new__(cls, *(arrays[name] for name in LANE_WORLD_FIELDS))
+
+
+structref.define_constructor(LaneWorld, LaneWorldType, list(LANE_WORLD_FIELDS))
+structref.define_boxing(LaneWorldType, LaneWorld)
+
+
+@nb.njit(cache=True, inline="always")
+def object_distance_lanes(n: int, points, row: int, k: int, kind, rotation, translation, param,
+                           out) -> None:  # pragma: no cover (compiled)
+    """out[w] = signed distance from points[row, :, w] to object k [m], for the n lanes."""
+    ox, oy, oz = translation[k, 0], translation[k, 1], translation[k, 2]
+    r00, r01, r02 = rotation[k, 0, 0], rotation[k, 0, 1], rotation[k, 0, 2]
+    r10, r11, r12 = rotation[k, 1, 0], rotation[k, 1, 1], rotation[k, 1, 2]
+    r20, r21, r22 = rotation[k, 2, 0], rotation[k, 2, 1], rotation[k, 2, 2]
+    p0, p1, p2 = param[k, 0], param[k, 1], param[k, 2]
+    shape = kind[k]
+    # One loop per kind: a branch on the kind inside the lane loop would keep it scalar.
+    if shape == BOX:
+        for w in range(n):
+            dx, dy, dz = points[row, 0, w] - ox, points[row, 1, w] - oy, points[row, 2, w] - oz
+            qx = abs(r00 * dx + r10 * dy + r20 * dz) - p0
+            qy = abs(r01 * dx + r11 * dy + r21 * dz) - p1
+            qz = abs(r02 * dx + r12 * dy + r22 * dz) - p2
+            ex, ey, ez = max(qx, 0.0), max(qy, 0.0), max(qz, 0.0)
+            out[w] = math.sqrt(ex * ex + ey * ey + ez * ez) + min(max(qx, max(qy, qz)), 0.0)
+    elif shape == SPHERE:
+        for w in range(n):
+            dx, dy, dz = points[row, 0, w] - ox, points[row, 1, w] - oy, points[row, 2, w] - oz
+            out[w] = math.sqrt(dx * dx + dy * dy + dz * dz) - p0
+    elif shape == CYLINDER:
+        for w in range(n):
+            dx, dy, dz = points[row, 0, w] - ox, points[row, 1, w] - oy, points[row, 2, w] - oz
+            px = r00 * dx + r10 * dy + r20 * dz
+            py = r01 * dx + r11 * dy + r21 * dz
+            pz = r02 * dx + r12 * dy + r22 * dz
+            radial = math.sqrt(px * px + py * py) - p0
+            axial = abs(pz) - p1
+            er, ea = max(radial, 0.0), max(axial, 0.0)
+            out[w] = math.sqrt(er * er + ea * ea) + min(max(radial, axial), 0.0)
+    else:  # capsule
+        for w in range(n):
+            dx, dy, dz = points[row, 0, w] - ox, points[row, 1, w] - oy, points[row, 2, w] - oz
+            px = r00 * dx + r10 * dy + r20 * dz
+            py = r01 * dx + r11 * dy + r21 * dz
+            pz = r02 * dx + r12 * dy + r22 * dz
+            ez = pz - min(max(pz, -p1), p1)
+            out[w] = math.sqrt(px * px + py * py + ez * ez) - p0
+
+
+@nb.njit(cache=True, inline="always")
+def _any_within(n: int, distance, limit: float) -> bool:  # pragma: no cover (compiled)
+    hit = False
+    for w in range(n):
+        hit |= distance[w] <= limit
+    return hit
+
+
+@nb.njit(cache=True, inline="always")
+def _flag_within(n: int, distance, limit: float, flags) -> None:  # pragma: no cover (compiled)
+    for w in range(n):
+        flags[w] |= distance[w] <= limit
+
+
+@nb.njit(cache=True, inline="always")
+def points_within(n: int, points_a, i: int, points_b, j: int, reach: float, out) -> bool:  # pragma: no cover
+    """out[w] = points_a[i, :, w] and points_b[j, :, w] are within `reach` (+ contact epsilon); any of them."""
+    r = reach + CONTACT_EPS_M
+    r2 = r * r
+    hit = False
+    for w in range(n):
+        dx = points_a[i, 0, w] - points_b[j, 0, w]
+        dy = points_a[i, 1, w] - points_b[j, 1, w]
+        dz = points_a[i, 2, w] - points_b[j, 2, w]
+        near = dx * dx + dy * dy + dz * dz <= r2
+        out[w] = near
+        hit |= near
+    return hit
+
+
+@nb.njit(cache=True, inline="always")
+def _pair_clear(n: int, p: int, q_lanes, offset, slot, low, step, count, gap) -> bool:  # pragma: no cover
+    """Whether self pair p's table proves its spheres apart in every lane (`self_pair_tables`)."""
+    if offset[p] < 0:
+        return False
+    for w in range(n):
+        flat = 0
+        for d in range(2):
+            if slot[p, d] < 0:
+                continue
+            i = int(math.floor((q_lanes[slot[p, d], w] - low[p, d]) / step[p, d] + 0.5))
+            if i < 0 or i >= count[p, d]:
+                return False  # outside the grid: the bound does not hold
+            flat = flat * count[p, d] + i
+        if gap[offset[p] + flat] <= CONTACT_EPS_M + ROUNDING_GUARD_M:
+            return False
+    return True
+
+
+@nb.njit(cache=True, inline="always")
+def _all_set(n: int, flags) -> bool:  # pragma: no cover (compiled)
+    done = True
+    for w in range(n):
+        done &= flags[w]
+    return done
+
+
+@nb.njit(cache=True, inline="always")
+def place_lanes(n: int, frames, joint: int, centers_joint, first: int, end: int, out) -> None:  # pragma: no cover
+    """out[s, :, w] = world position of centers_joint[s] (joint frame) for s in [first, end)."""
+    for s in range(first, end):
+        cx, cy, cz = centers_joint[s, 0], centers_joint[s, 1], centers_joint[s, 2]
+        for w in range(n):
+            out[s, 0, w] = frames[joint, 9, w] + frames[joint, 0, w] * cx + frames[joint, 1, w] * cy + frames[joint, 2, w] * cz
+            out[s, 1, w] = frames[joint, 10, w] + frames[joint, 3, w] * cx + frames[joint, 4, w] * cy + frames[joint, 5, w] * cz
+            out[s, 2, w] = frames[joint, 11, w] + frames[joint, 6, w] * cx + frames[joint, 7, w] * cy + frames[joint, 8, w] * cz
+
+
+@nb.njit(cache=True, inline="always")
+def _ensure_placed(n: int, li: int, placed, frames, link_joint, centers_joint, link_start,
+                   sphere_lanes) -> None:  # pragma: no cover (compiled)
+    # Spheres are placed per link on first need: a link whose bound touches nothing needs none.
+    if not placed[li]:
+        place_lanes(n, frames, link_joint[li], centers_joint, link_start[li], link_start[li + 1], sphere_lanes)
+        placed[li] = True
+
+
+@nb.njit(cache=True, fastmath={"contract"})
+def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> None:  # pragma: no cover (compiled)
+    """world.flags[w] = whether any sphere of lane w's state is within contact (FCL must decide).
+
+    Every loop runs over `lanes` lanes: an edge fills whole vectors (unused lanes hold a copy of a
+    used one), a single state takes one lane. The count is a run-time
+    value on purpose: with a constant count the compiler unrolls the short loops into scalar code
+    instead (measured 15 % slower per state).
+
+    Multiply-adds may fuse ("contract", ~10 % faster): it changes results by rounding only, far
+    inside the spheres' 0.25 mm tolerance.
+
+    With `stop_at_first_lane`, checking may stop once lane 0 is flagged (the other lanes' flags
+    then are incomplete): enough for an edge's first suspect.
+
+    Args:
+        lanes: Lanes to check, 1..LANES; the states are in world.cos_lanes, sin_lanes and q_lanes.
+        world: The robot, scene and scratch buffers (`LaneWorld`).
+    """
+    frames, sphere_lanes, bound_lanes, placed = world.frames, world.sphere_lanes, world.bound_lanes, world.placed
+    near, distance, att_lanes, flags = world.near, world.distance, world.att_lanes, world.flags
+    centers_joint, radii_self, radii_world = world.centers_joint, world.radii_self, world.radii_world
+    link_start, bound_center_joint, bound_self = world.link_start, world.bound_center_joint, world.bound_self
+    bound_world, self_pairs, link_joint = world.bound_world, world.self_pairs, world.link_joint
+    obj_kind, obj_rotation, obj_translation = world.obj_kind, world.obj_rotation, world.obj_translation
+    obj_param, obj_bound = world.obj_param, world.obj_bound
+    has_grid, grid, grid_origin, grid_voxel = world.has_grid, world.grid, world.grid_origin, world.grid_voxel
+    grid_box, occupied = world.grid_box, world.occupied
+    att_center_joint, att_radius, att_radius_world = world.att_center_joint, world.att_radius, world.att_radius_world
+    att_joint, att_skip = world.att_joint, world.att_skip
+    pair_offset, pair_slot, pair_low, pair_step = world.pair_offset, world.pair_slot, world.pair_low, world.pair_step
+    pair_count, pair_gap, q_lanes = world.pair_count, world.pair_gap, world.q_lanes
+    forward_joints_lanes(lanes, world.cos_lanes, world.sin_lanes, world.q_lanes, world.parent, world.joint_type,
+                         world.q_slot, world.coefficients, world.base_joint, world.joint_from_base, frames)
+    n_links = link_start.shape[0] - 1
+    for w in range(lanes):
+        flags[w] = False
+    for li in range(n_links):
+        placed[li] = False
+        place_lanes(lanes, frames, link_joint[li], bound_center_joint, li, li + 1, bound_lanes)
+    # Robot vs primitives: link bounding sphere first, then the link's spheres.
+    for li in range(n_links):
+        for k in range(obj_kind.shape[0]):
+            reach = bound_world[li] + obj_bound[k]
+            r2 = reach * reach
+            ox, oy, oz = obj_translation[k, 0], obj_translation[k, 1], obj_translation[k, 2]
+            close = False
+            for w in range(lanes):
+                dx, dy, dz = bound_lanes[li, 0, w] - ox, bound_lanes[li, 1, w] - oy, bound_lanes[li, 2, w] - oz
+                close |= dx * dx + dy * dy + dz * dz <= r2
+            if not close:
+                continue
+            object_distance_lanes(lanes, bound_lanes, li, k, obj_kind, obj_rotation, obj_translation, obj_param, distance)
+            if not _any_within(lanes, distance, bound_world[li]):
+                continue
+            _ensure_placed(lanes, li, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
+            for s in range(link_start[li], link_start[li + 1]):
+                object_distance_lanes(lanes, sphere_lanes, s, k, obj_kind, obj_rotation, obj_translation, obj_param,
+                                       distance)
+                _flag_within(lanes, distance, radii_world[s] + CONTACT_EPS_M, flags)
+            if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
+                return
+        if has_grid:
+            for w in range(lanes):
+                if flags[w] or voxel_distance(bound_lanes[li, 0, w], bound_lanes[li, 1, w], bound_lanes[li, 2, w],
+                                               grid, grid_origin, grid_voxel, grid_box) > bound_world[li]:
+                    continue
+                _ensure_placed(lanes, li, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
+                for s in range(link_start[li], link_start[li + 1]):
+                    x, y, z = sphere_lanes[s, 0, w], sphere_lanes[s, 1, w], sphere_lanes[s, 2, w]
+                    reach = radii_world[s] + CONTACT_EPS_M
+                    if voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach and touches_voxels(
+                            x, y, z, reach, occupied, grid_origin, grid_voxel):
+                        flags[w] = True
+                        break
+            if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
+                return
+    # Self-collision, unpadded.
+    for p in range(self_pairs.shape[0]):
+        la, lb = self_pairs[p, 0], self_pairs[p, 1]
+        if not points_within(lanes, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
+            continue
+        if _pair_clear(lanes, p, q_lanes, pair_offset, pair_slot, pair_low, pair_step, pair_count, pair_gap):
+            continue
+        _ensure_placed(lanes, la, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
+        _ensure_placed(lanes, lb, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
+        for sa in range(link_start[la], link_start[la + 1]):
+            # Against the other link's bounding sphere first: most spheres of a pair whose
+            # bounds overlap are far from the other link.
+            if not points_within(lanes, sphere_lanes, sa, bound_lanes, lb, radii_self[sa] + bound_self[lb], near):
+                continue
+            for sb in range(link_start[lb], link_start[lb + 1]):
+                if points_within(lanes, sphere_lanes, sa, sphere_lanes, sb, radii_self[sa] + radii_self[sb], near):
+                    for w in range(lanes):
+                        flags[w] |= near[w]
+        if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
+            return
+    # Attached spheres: against the world (padded) and the robot links they may not touch.
+    n_attached = att_radius.shape[0]
+    if n_attached == 0:
+        return
+    for a in range(n_attached):
+        place_lanes(lanes, frames, att_joint[a], att_center_joint, a, a + 1, att_lanes)
+    for w in range(lanes):
+        for a in range(n_attached):
+            if flags[w]:
+                break
+            x, y, z = att_lanes[a, 0, w], att_lanes[a, 1, w], att_lanes[a, 2, w]
+            reach = att_radius_world[a] + CONTACT_EPS_M
+            for k in range(obj_kind.shape[0]):
+                if object_distance(x, y, z, k, obj_kind, obj_rotation, obj_translation, obj_param) <= reach:
+                    flags[w] = True
+                    break
+            if flags[w] or (has_grid and voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach
+                            and touches_voxels(x, y, z, reach, occupied, grid_origin, grid_voxel)):
+                flags[w] = True
+                break
+            for lo in range(n_links):
+                if att_skip[a, lo]:
+                    continue
+                dx, dy, dz = x - bound_lanes[lo, 0, w], y - bound_lanes[lo, 1, w], z - bound_lanes[lo, 2, w]
+                reach = att_radius[a] + bound_self[lo] + CONTACT_EPS_M
+                if dx * dx + dy * dy + dz * dz > reach * reach:
+                    continue
+                _ensure_placed(lanes, lo, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
+                for s in range(link_start[lo], link_start[lo + 1]):
+                    dx, dy, dz = x - sphere_lanes[s, 0, w], y - sphere_lanes[s, 1, w], z - sphere_lanes[s, 2, w]
+                    reach = att_radius[a] + radii_self[s] + CONTACT_EPS_M
+                    if dx * dx + dy * dy + dz * dz <= reach * reach:
+                        flags[w] = True
+                        break
+                if flags[w]:
+                    break
+
+
+@nb.njit(cache=True)
+def state_suspect_lanes(q, world: LaneWorld) -> bool:  # pragma: no cover (compiled)
+    """Whether any sphere at the one state `q` (dof,) is within contact (lane 0 alone)."""
+    cos_lanes, sin_lanes, q_lanes = world.cos_lanes, world.sin_lanes, world.q_lanes
+    for j in range(q.shape[0]):
+        cos_lanes[j, 0], sin_lanes[j, 0], q_lanes[j, 0] = math.cos(q[j]), math.sin(q[j]), q[j]
+    lanes_suspect(1, world, True)
+    return world.flags[0]
+
+
+@nb.njit(cache=True)
+def edge_suspect_steps(a, b, resolution, first_only, out, queue, world: LaneWorld) -> tuple[int, int]:  # pragma: no cover
+    """(count of suspects written to `out`, steps), or (-1, steps) when `out` and `queue` have
+    fewer than 2 * steps + 2 rows. See `SphereBroadPhase.edge_suspects`."""
+    dof = a.shape[0]
+    longest = 0.0
+    for j in range(dof):
+        longest = max(longest, abs(b[j] - a[j]))
+    steps = max(1, int(math.ceil(longest / resolution - 1e-9)))
+    if out.shape[0] < 2 * steps + 2 or queue.shape[0] < 2 * steps + 2:
+        return -1, steps
+    # cos and sin of every state's joints by a rotation per step (a sine and a cosine per joint
+    # and state cost a third of the kinematics), taken afresh every 16 steps against drift.
+    trig = np.empty((steps + 1, 2, dof))
+    for j in range(dof):
+        step = (b[j] - a[j]) / steps
+        c_step, s_step = math.cos(step), math.sin(step)
+        c = s = 0.0
+        for k in range(steps + 1):
+            if k % 16 == 0:
+                angle = a[j] + (b[j] - a[j]) * (k / steps)
+                c, s = math.cos(angle), math.sin(angle)
+            else:
+                c, s = c * c_step - s * s_step, s * c_step + c * s_step
+            trig[k, 0, j], trig[k, 1, j] = c, s
+    # Visiting order of CollisionWorld.motion_valid: b, interior in bisection (breadth-first) order, a.
+    order = queue[:, 0]
+    spans = queue[:, 1]
+    n_order = 0
+    order[n_order] = steps
+    n_order += 1
+    # The FIFO of (lo, hi) spans lives in queue[:, 1] as lo * (steps + 1) + hi.
+    head, tail = 0, 1
+    spans[0] = steps  # lo = 0, hi = steps
+    while head < tail:
+        lo, hi = spans[head] // (steps + 1), spans[head] % (steps + 1)
+        head += 1
+        if hi - lo < 2:
+            continue
+        mid = (lo + hi) // 2
+        order[n_order] = mid
+        n_order += 1
+        spans[tail] = lo * (steps + 1) + mid
+        spans[tail + 1] = mid * (steps + 1) + hi
+        tail += 2
+    order[n_order] = 0
+    n_order += 1
+    cos_lanes, sin_lanes, q_lanes, flags = world.cos_lanes, world.sin_lanes, world.q_lanes, world.flags
+    count = 0
+    for first in range(0, n_order, LANES):
+        n = min(LANES, n_order - first)
+        # A short chunk is padded to a whole number of vectors (VECTOR lanes) with copies.
+        lanes = min(LANES, (n + VECTOR - 1) // VECTOR * VECTOR)
+        for w in range(lanes):
+            k = order[first + min(w, n - 1)]
+            t = k / steps
+            for j in range(dof):
+                cos_lanes[j, w], sin_lanes[j, w] = trig[k, 0, j], trig[k, 1, j]
+                q_lanes[j, w] = a[j] + (b[j] - a[j]) * t
+        lanes_suspect(lanes, world, first_only)
+        for w in range(n):
+            if flags[w]:
+                out[count] = order[first + w]
+                count += 1
+                if first_only:
+                    return count, steps
+    return count, steps

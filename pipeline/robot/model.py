@@ -1,0 +1,323 @@
+"""Kinematic and collision model of a robot arm: Pinocchio forward kinematics plus URDF link geometry.
+
+The world frame is the frame of `RobotConfig.base_link`. Joints outside the planning group are
+locked at `RobotConfig.fixed_joint_positions` (0 when not given, or the mimicked joint's locked
+value for a `<mimic>` joint) by reducing the Pinocchio model, so every configuration vector `q`
+holds exactly the planning joints in `RobotConfig.joint_names` order.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from robonav.pipeline.robot.link_geometry import LinkShape, convex_hull, parse_collision_shapes
+from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.transforms import FloatArray
+
+PYBULLET_DATA_PREFIX = "pybullet_data:"
+
+
+def resolve_urdf_path(urdf: str) -> Path:
+    """File of a `RobotConfig.urdf` value: `pybullet_data:<relative path>` or a file path."""
+    if urdf.startswith(PYBULLET_DATA_PREFIX):
+        import pybullet_data  # imported lazily: only configs naming it need the package
+
+        path = Path(pybullet_data.getDataPath()) / urdf[len(PYBULLET_DATA_PREFIX):]
+    else:
+        path = Path(urdf)
+    if not path.is_file():
+        raise ValueError(f"robot.urdf '{urdf}' does not name a file (resolved to {path})")
+    return path
+
+
+class RobotModel:
+    """Forward kinematics, limits and collision geometry of the planning joints of one robot.
+
+    Build with `RobotModel.from_config`. Not thread-safe: FK reuses one Pinocchio data buffer.
+    """
+
+    def __init__(
+        self,
+        config: RobotConfig,
+        model: pin.Model,
+        q_index: np.ndarray,
+        link_shapes: dict[str, list[LinkShape]],
+        parent_link: dict[str, str],
+        geometry_links: frozenset[str],
+    ) -> None:
+        """Prefer `from_config`; this constructor trusts its (already consistent) arguments."""
+        self._config = config
+        self._dof = len(config.joint_names)
+        self._model = model
+        self._data = model.createData()
+        self._q_index = q_index
+        self._q_buffer = pin.neutral(model)
+        self._link_shapes = link_shapes
+        self._frame_ids = {name: model.getFrameId(name, pin.BODY) for name in link_shapes}
+        self._frame_id_list = list(self._frame_ids.values())
+        self._base_id = model.getFrameId(config.base_link, pin.BODY)
+        # A base rigidly attached to the model root has a constant pose: invert it once.
+        self._base_is_fixed = model.frames[self._base_id].parentJoint == 0
+        if self._base_is_fixed:
+            pin.framesForwardKinematics(model, self._data, self._q_buffer)
+        self._world_from_root_fixed = (
+            np.linalg.inv(self._data.oMf[self._base_id].homogeneous) if self._base_is_fixed else None
+        )
+        self._root_is_world = self._base_is_fixed and bool(np.allclose(self._world_from_root_fixed, np.eye(4)))
+        base_joint = model.frames[self._base_id].parentJoint
+        self._static_links = tuple(name for name, fid in self._frame_ids.items()
+                                   if model.frames[fid].parentJoint == base_joint)
+        self._lower = np.array(model.lowerPositionLimit[q_index], dtype=np.float64)
+        self._upper = np.array(model.upperPositionLimit[q_index], dtype=np.float64)
+        for name, (lower, upper) in config.position_limits_rad.items():
+            i = config.joint_names.index(name)
+            self._lower[i], self._upper[i] = lower, upper
+        self._link_hulls = {
+            link: convex_hull(np.vstack([s.hull_vertices for s in shapes]))[0] for link, shapes in link_shapes.items()
+        }
+        self._adjacent = _adjacent_pairs(parent_link, frozenset(link_shapes), geometry_links)
+        for arr in (self._lower, self._upper, *self._link_hulls.values()):
+            arr.setflags(write=False)
+
+    @classmethod
+    def from_config(cls, cfg: RobotConfig) -> RobotModel:
+        """Load the URDF a config names and build the model.
+
+        Raises:
+            ValueError: the URDF, a joint or link named in `cfg`, or a mesh cannot be found, or a
+                planning joint is not a 1-DoF (revolute/prismatic) joint.
+        """
+        urdf_path = resolve_urdf_path(cfg.urdf)
+        full = pin.buildModelFromUrdf(str(urdf_path))
+        _check_names(full, cfg, urdf_path.name)
+        root = ET.parse(urdf_path).getroot()
+        model = _reduced_model(full, cfg, _locked_positions(root, cfg))
+        q_index = np.array([model.joints[model.getJointId(n)].idx_q for n in cfg.joint_names], dtype=np.int64)
+
+        shapes = parse_collision_shapes(urdf_path)
+        for i, link in enumerate(cfg.collision_links):
+            if link not in shapes:
+                raise ValueError(f"robot.collision_links[{i}] '{link}' has no collision geometry in {urdf_path.name}")
+        for pair in cfg.allowed_collision_pairs:
+            for link in pair:
+                if link not in shapes:
+                    raise ValueError(f"robot.allowed_collision_pairs names '{link}', which has no collision geometry")
+        selected = {k: v for k, v in shapes.items() if not cfg.collision_links or k in cfg.collision_links}
+        parent_link = {j.find("child").attrib["link"]: j.find("parent").attrib["link"] for j in root.findall("joint")}
+        return cls(cfg, model, q_index, selected, parent_link, frozenset(shapes))
+
+    @property
+    def config(self) -> RobotConfig:
+        return self._config
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return self._config.joint_names
+
+    @property
+    def dof(self) -> int:
+        return self._dof
+
+    @property
+    def lower_limits_rad(self) -> FloatArray:
+        """(dof,) lower position limits: the URDF's or `config.position_limits_rad` [rad, or m for prismatic]."""
+        return self._lower
+
+    @property
+    def upper_limits_rad(self) -> FloatArray:
+        """(dof,) upper position limits: the URDF's or `config.position_limits_rad` [rad, or m for prismatic]."""
+        return self._upper
+
+    @property
+    def velocity_limits(self) -> FloatArray:
+        """(dof,) velocity limits from the config [rad/s]."""
+        return np.array(self._config.max_velocity_rad_s, dtype=np.float64)
+
+    @property
+    def acceleration_limits(self) -> FloatArray:
+        """(dof,) acceleration limits from the config [rad/s^2]."""
+        return np.array(self._config.max_acceleration_rad_s2, dtype=np.float64)
+
+    @property
+    def jerk_limits(self) -> FloatArray:
+        """(dof,) jerk limits from the config [rad/s^3]."""
+        return np.array(self._config.max_jerk_rad_s3, dtype=np.float64)
+
+    @property
+    def home_position_rad(self) -> FloatArray:
+        """(dof,) home configuration from the config [rad]."""
+        return np.array(self._config.home_position_rad, dtype=np.float64)
+
+    @property
+    def collision_link_names(self) -> tuple[str, ...]:
+        """Checked links with collision geometry, in URDF order."""
+        return tuple(self._link_shapes)
+
+    @property
+    def static_link_names(self) -> tuple[str, ...]:
+        """Checked links rigidly attached to the base (e.g. panda_link0): no planning joint moves them."""
+        return self._static_links
+
+    @property
+    def link_collision_shapes(self) -> dict[str, list[LinkShape]]:
+        """Checked link name -> its collision shapes (hulls in the link frame)."""
+        return self._link_shapes
+
+    @property
+    def link_hull_vertices(self) -> dict[str, FloatArray]:
+        """Checked link name -> (H, 3) convex hull of all its shapes, link frame [m]."""
+        return self._link_hulls
+
+    @property
+    def adjacent_link_pairs(self) -> frozenset[tuple[str, str]]:
+        """Sorted pairs of checked links joined in the kinematic tree (through geometry-less links)."""
+        return self._adjacent
+
+    def validate_q(self, q: FloatArray, label: str = "q") -> FloatArray:
+        """`q` as a (dof,) float64 array.
+
+        Raises:
+            ValueError: wrong shape or a non-finite entry (the message names `label` and the index).
+        """
+        arr = np.asarray(q, dtype=np.float64)
+        if arr.shape != (self._dof,):
+            raise ValueError(
+                f"{label} must have shape ({self.dof},) (one value per joint {list(self.joint_names)}), "
+                f"got shape {arr.shape}"
+            )
+        # One dot product finds NaN and inf (planners call this per edge; np.isfinite().all()
+        # costs three times as much); huge finite values that overflow it are looked at again.
+        if not math.isfinite(arr.dot(arr)):
+            bad = np.flatnonzero(~np.isfinite(arr))
+            if bad.size:
+                i = int(bad[0])
+                raise ValueError(f"{label}[{i}] ({self.joint_names[i]}) must be finite, got {arr[i]}")
+        return arr
+
+    def check_joint_limits(self, q: FloatArray, tolerance_rad: float = 1e-9) -> list[str]:
+        """Human-readable joint limit violations of `q` (empty when within limits)."""
+        arr = self.validate_q(q)
+        out = []
+        for i, name in enumerate(self.joint_names):
+            if arr[i] < self._lower[i] - tolerance_rad:
+                out.append(f"{name} (index {i}) = {arr[i]:.4f} is below its lower limit {self._lower[i]:.4f}")
+            elif arr[i] > self._upper[i] + tolerance_rad:
+                out.append(f"{name} (index {i}) = {arr[i]:.4f} is above its upper limit {self._upper[i]:.4f}")
+        return out
+
+    def _forward(self, q: FloatArray) -> None:
+        self._q_buffer[self._q_index] = q
+        pin.framesForwardKinematics(self._model, self._data, self._q_buffer)
+
+    def _world_from_root(self) -> FloatArray:
+        if self._world_from_root_fixed is not None:
+            return self._world_from_root_fixed
+        return np.linalg.inv(self._data.oMf[self._base_id].homogeneous)
+
+    def link_poses(self, q: FloatArray) -> dict[str, FloatArray]:
+        """world_from_link (4, 4) of every checked link with collision geometry at `q` (dof,)."""
+        self._forward(self.validate_q(q))
+        oMf = self._data.oMf
+        if self._root_is_world:
+            # The common case (base link = URDF root) skips 11 matrix products per call.
+            return {name: oMf[fid].homogeneous for name, fid in self._frame_ids.items()}
+        world_from_root = self._world_from_root()
+        return {name: world_from_root @ oMf[fid].homogeneous for name, fid in self._frame_ids.items()}
+
+    def link_pose_stack(self, q: FloatArray) -> FloatArray:
+        """world_from_link (L, 4, 4) of the checked links in `collision_link_names` order at `q` (dof,).
+
+        The array form of `link_poses`, for callers that index links by position.
+        """
+        self._forward(self.validate_q(q))
+        oMf = self._data.oMf
+        stack = np.array([oMf[fid].homogeneous for fid in self._frame_id_list]).reshape(-1, 4, 4)
+        return stack if self._root_is_world else self._world_from_root() @ stack
+
+    def frame_pose(self, q: FloatArray, link_name: str) -> FloatArray:
+        """world_from_link (4, 4) of any link (or frame) `link_name` at `q` (dof,)."""
+        if not self._model.existFrame(link_name):
+            raise ValueError(f"link_name '{link_name}' is not a frame of robot '{self._config.name}'")
+        self._forward(self.validate_q(q))
+        return self._world_from_root() @ self._data.oMf[self._model.getFrameId(link_name)].homogeneous
+
+    def link_poses_batch(self, qs: FloatArray) -> dict[str, FloatArray]:
+        """world_from_link (M, 4, 4) of every checked link for each row of `qs` (M, dof)."""
+        arr = np.asarray(qs, dtype=np.float64)
+        if arr.ndim != 2 or arr.shape[1] != self.dof:
+            raise ValueError(f"qs must have shape (M, {self.dof}), got shape {arr.shape}")
+        out = {name: np.empty((arr.shape[0], 4, 4)) for name in self._frame_ids}
+        for k in range(arr.shape[0]):
+            for name, pose in self.link_poses(self.validate_q(arr[k], f"qs[{k}]")).items():
+                out[name][k] = pose
+        return out
+
+
+def _check_names(full: pin.Model, cfg: RobotConfig, urdf_name: str) -> None:
+    names = list(full.names)
+    for i, name in enumerate(cfg.joint_names):
+        if name not in names:
+            raise ValueError(f"robot.joint_names[{i}] '{name}' is not a joint of {urdf_name} (joints: {names[1:]})")
+        if full.joints[names.index(name)].nq != 1:
+            raise ValueError(f"robot.joint_names[{i}] '{name}' is not a revolute or prismatic joint")
+    for name in cfg.fixed_joint_positions:
+        if name not in names or name in cfg.joint_names or full.joints[names.index(name)].nq != 1:
+            raise ValueError(
+                f"robot.fixed_joint_positions names '{name}', which is not a 1-DoF non-planning joint of {urdf_name}"
+            )
+    for label, link in (("base_link", cfg.base_link), ("end_effector_link", cfg.end_effector_link)):
+        if not full.existBodyName(link):
+            raise ValueError(f"robot.{label} '{link}' is not a link of {urdf_name}")
+
+
+def _reduced_model(full: pin.Model, cfg: RobotConfig, locked_q: dict[str, float]) -> pin.Model:
+    """`full` with every non-planning joint locked at `locked_q` (0, or neutral, when absent)."""
+    q_ref = pin.neutral(full)
+    locked_ids = []
+    for jid in range(1, full.njoints):
+        name = full.names[jid]
+        if name in cfg.joint_names:
+            continue
+        locked_ids.append(jid)
+        if full.joints[jid].nq == 1:
+            q_ref[full.joints[jid].idx_q] = locked_q.get(name, 0.0)
+    # Locking (rather than carrying) the other joints keeps FK to the planning joints only;
+    # Pinocchio does not clamp the locked values, so fingers may sit beyond their URDF limit.
+    return pin.buildReducedModel(full, locked_ids, q_ref) if locked_ids else full
+
+
+def _locked_positions(root: ET.Element, cfg: RobotConfig) -> dict[str, float]:
+    """Configured positions of locked joints; an unconfigured `<mimic>` joint follows its leader."""
+    out = dict(cfg.fixed_joint_positions)
+    for joint in root.findall("joint"):
+        mimic = joint.find("mimic")
+        name = joint.attrib["name"]
+        if mimic is None or name in out or mimic.attrib["joint"] not in out:
+            continue
+        multiplier = float(mimic.attrib.get("multiplier", 1.0))
+        out[name] = multiplier * out[mimic.attrib["joint"]] + float(mimic.attrib.get("offset", 0.0))
+    return out
+
+
+def _adjacent_pairs(
+    parent_link: dict[str, str], checked: frozenset[str], geometry_links: frozenset[str]
+) -> frozenset[tuple[str, str]]:
+    """Sorted pairs of checked links where one is the nearest ancestor with geometry of the other.
+
+    Links without any collision geometry (e.g. panda_link8) are skipped, so panda_link7 and
+    panda_hand count as adjacent, as in MoveIt's adjacency rule.
+    """
+    pairs: set[tuple[str, str]] = set()
+    for link in checked:
+        ancestor = parent_link.get(link)
+        while ancestor is not None and ancestor not in geometry_links:
+            ancestor = parent_link.get(ancestor)
+        if ancestor is not None and ancestor in checked:
+            a, b = sorted((link, ancestor))
+            pairs.add((a, b))
+    return frozenset(pairs)

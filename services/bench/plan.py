@@ -1,0 +1,427 @@
+"""`robonav bench`: benchmarks over third-party problem sets. `robonav bench plan` is the first.
+
+`robonav bench plan` runs the planner on MotionBenchMaker problems (`mbm-primitives/1` files,
+see the shared benchmarks' FORMAT.md) and counts a problem as solved only when the planner
+succeeded AND its path starts at the start, ends at the goal and passes a fine re-check:
+every segment interpolated at <= 0.01 rad and every state checked with FCL against the
+robot's collision MESHES (`pipeline/mesh_check.py`), not the hulls the planner plans with.
+
+Timing is wall-clock around `MotionPlanner.plan` only (search, simplification and the
+planner's own re-validation); building the collision world or the occupancy map is setup.
+The planning thread's CPU time is reported beside it (`median_cpu_ms`): on a shared machine
+the wall time also holds the time the planner waited for a CPU.
+
+This file reads the problem files, runs the pure core and prints; no algorithm lives here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, TextIO
+
+import numpy as np
+
+from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.evaluation.mesh_check import FINE_STEP_RAD, MeshCollisionChecker
+from robonav.pipeline.perception.config import PerceptionConfig
+from robonav.pipeline.perception.maps.octree import OccupancyMap
+from robonav.pipeline.evaluation.surface_sampling import sample_object_surfaces
+from robonav.pipeline.planning.config import PlannerConfig
+from robonav.pipeline.evaluation.mbm import MbmProblem, MbmProblemSet, mbm_robot_config, parse_mbm
+from robonav.pipeline.planning.metrics import path_length_rad
+from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
+from robonav.pipeline.planning.ompl_planners import seed_ompl_once
+from robonav.pipeline.planning.result import PlanStatus
+from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.scene import SceneObject
+
+BENCH_RANGE_RAD = 1.0
+"""RRTConnect range for the benchmark: MPLib's MBM figures solve 99.4 % with it, 82.7 % with OMPL's default."""
+BENCH_EDGE_RESOLUTION_RAD = 0.02
+"""Joint step of the planner's edge checks while it searches and shortcuts [rad]."""
+BENCH_PATH_CHECK_RESOLUTION_RAD = FINE_STEP_RAD
+"""The planner re-checks the path it returns as finely as the benchmark's re-check, so a good
+planner loses no paths to it."""
+CLOUD_SPACING_M = 0.005
+"""Spacing of the synthetic surface cloud for `--scene cloud` [m]."""
+CLOUD_ORIGIN_HEIGHT_M = 0.3
+"""The synthetic camera sits this far above the cloud's highest point [m]."""
+SUMMARY_KEYS = ("problems", "solved", "solved_pct", "median_ms", "p95_ms", "median_length", "invalid_paths",
+                "median_cpu_ms")
+PROGRESS_WIDTH = 30
+
+SceneKind = Literal["primitives", "cloud"]
+
+
+@dataclass(frozen=True)
+class ProblemRecord:
+    """The outcome of one benchmark problem.
+
+    Attributes:
+        family: Problem family.
+        index: Problem number within the family.
+        status: The planner's status value ('success', 'timeout', 'goal_invalid', ...).
+        wall_ms: Wall-clock time of the `plan` call [ms].
+        returned_path: The planner returned a path.
+        path_valid: That path passed the fine mesh re-check (False when there is no path).
+        length_rad: Joint-space length of the returned path, or None [rad].
+        detail: The planner's detail, or the re-check's reason for rejecting the path.
+        cpu_ms: CPU time of the calling thread during the `plan` call [ms]; beside the wall
+            time it tells planning work from waiting on a busy machine (a `race` runs in
+            child processes, whose CPU time is not in it).
+    """
+
+    family: str
+    index: int
+    status: str
+    wall_ms: float
+    returned_path: bool
+    path_valid: bool
+    length_rad: float | None
+    detail: str
+    cpu_ms: float | None = None
+
+    @property
+    def solved(self) -> bool:
+        return self.returned_path and self.path_valid
+
+
+def parse_args(argv: Sequence[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="robonav bench", description="Benchmarks over third-party problem sets.")
+    kinds = parser.add_subparsers(dest="kind", required=True)
+    plan = kinds.add_parser(
+        "plan", help="plan MotionBenchMaker problems and re-check every path on the link meshes",
+        description="Plan every problem of mbm-primitives/1 files; a problem is solved only when the "
+                    "returned path passes a 0.01 rad re-check against the robot's collision meshes.")
+    plan.add_argument("--problems", type=Path, required=True,
+                      help="an mbm-primitives/1 JSON file, or a folder of them (every *.json)")
+    plan.add_argument("--planner", default="rrtconnect", help="planner id (default: rrtconnect)")
+    plan.add_argument("--time-limit", type=_positive_float, default=1.0, help="planning budget per problem [s]")
+    plan.add_argument("--seed", type=int, default=0, help="seeds OMPL (once per process), shortcutting, clouds")
+    plan.add_argument("--padding", type=_non_negative_float, default=0.0,
+                      help="robot-vs-world padding for planning [m] (the re-check never pads)")
+    plan.add_argument("--limit", type=_positive_int, default=None, help="first N problems of each family")
+    plan.add_argument("--families", default=None, help="comma-separated family names (default: all)")
+    plan.add_argument("--json", type=Path, default=None, help="write the summary as JSON to this file")
+    plan.add_argument("--scene", choices=("primitives", "cloud"), default="primitives",
+                      help="plan against the exact primitives, or an occupancy map built from a sampled cloud")
+    plan.add_argument("--cloud-inflation", type=_non_negative_float, default=PerceptionConfig().inflation_m,
+                      help="--scene cloud: occupancy inflation [m] (default: the perception default)")
+    plan.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    from robonav.services.bench.executor import add_parser as add_executor_parser
+
+    add_executor_parser(kinds)
+    from robonav.services.bench.perception import add_parser as add_perception_parser
+
+    add_perception_parser(kinds)
+    from robonav.services.bench.record import add_parser as add_record_parser
+
+    add_record_parser(kinds)
+    return parser.parse_args(list(argv))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of `robonav bench`; returns the exit code (2 on bad input)."""
+    args = parse_args(sys.argv[1:] if argv is None else argv)
+    # Each benchmark kind has its own sub-subcommand and function.
+    if args.kind == "record":
+        from robonav.services.bench.record import main as record_main
+
+        return record_main(args)
+    if args.kind == "perception":
+        from robonav.services.bench.perception import main as perception_main
+
+        return perception_main(args)
+    if args.kind == "executor":
+        from robonav.services.bench.executor import main as executor_main
+
+        return executor_main(args)
+    return plan_main(args)
+
+
+def plan_main(args: argparse.Namespace) -> int:
+    """`robonav bench plan`: run, print the table (and unsolved problems), write the JSON."""
+    try:
+        sets = select(load_problem_sets(args.problems), families=args.families, limit=args.limit)
+    except (OSError, ValueError) as exc:
+        print(f"robonav bench plan: {exc}", file=sys.stderr)
+        return 2
+    progress = None if args.no_progress else sys.stderr
+    try:
+        # OMPL takes one seed per process, before its first sampler (see seed_ompl_once).
+        seed_ompl_once(args.seed)
+        records = run_plan_benchmark(sets, planner_id=args.planner, time_limit_s=args.time_limit, seed=args.seed,
+                                     padding_m=args.padding, scene=args.scene, progress=progress,
+                                     perception=dataclasses.replace(PerceptionConfig(), inflation_m=args.cloud_inflation))
+    except ValueError as exc:
+        print(f"robonav bench plan: {exc}", file=sys.stderr)
+        return 2
+    report = build_report(records, config={
+        "problems_path": str(args.problems), "families": [s.family for s in sets], "limit": args.limit,
+        "planner": args.planner, "time_limit_s": args.time_limit, "seed": args.seed, "padding_m": args.padding,
+        "scene": args.scene, "range_rad": BENCH_RANGE_RAD, "edge_resolution_rad": BENCH_EDGE_RESOLUTION_RAD,
+        "path_check_resolution_rad": BENCH_PATH_CHECK_RESOLUTION_RAD,
+        "fine_check_step_rad": FINE_STEP_RAD, "fine_check_model": "link collision meshes (FCL BVH), unpadded",
+        **({"cloud_spacing_m": CLOUD_SPACING_M, "occupancy_resolution_m": PerceptionConfig().resolution_m,
+            "occupancy_inflation_m": args.cloud_inflation} if args.scene == "cloud" else {}),
+    })
+    print(format_table(report))
+    unsolved = [r for r in records if not r.solved]
+    if unsolved:
+        print("\nunsolved:")
+        for r in unsolved:
+            reason = "path failed the mesh re-check" if r.returned_path else r.status
+            print(f"  {r.family} #{r.index}: {reason} ({r.wall_ms:.0f} ms): {r.detail}")
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    return 0
+
+
+def load_problem_sets(path: Path) -> list[MbmProblemSet]:
+    """Parse one `mbm-primitives/1` file, or every `*.json` in a folder (sorted by name).
+
+    Raises:
+        ValueError: no JSON file, invalid JSON, or a malformed document (names the file).
+        OSError: a file cannot be read.
+    """
+    files = sorted(path.glob("*.json")) if path.is_dir() else [path]
+    if not files:
+        raise ValueError(f"no *.json problem files in {path}")
+    sets = []
+    for file in files:
+        try:
+            document = json.loads(file.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{file}: invalid JSON: {exc}") from exc
+        try:
+            sets.append(parse_mbm(document))
+        except ValueError as exc:
+            raise ValueError(f"{file}: {exc}") from exc
+    return sets
+
+
+def select(sets: list[MbmProblemSet], *, families: str | None, limit: int | None) -> list[MbmProblemSet]:
+    """The sets of the named families (comma-separated; None = all), each cut to its first `limit` problems.
+
+    Raises:
+        ValueError: a named family is not among the loaded sets.
+    """
+    known = [s.family for s in sets]
+    if families is not None:
+        wanted = [f.strip() for f in families.split(",") if f.strip()]
+        unknown = [f for f in wanted if f not in known]
+        if unknown or not wanted:
+            raise ValueError(f"--families: unknown family {unknown or families!r} (known: {', '.join(known)})")
+        sets = [s for s in sets if s.family in wanted]
+    if limit is not None:
+        sets = [dataclasses.replace(s, problems=s.problems[:limit]) for s in sets]
+    return sets
+
+
+def run_plan_benchmark(
+    sets: Sequence[MbmProblemSet],
+    *,
+    planner_id: str,
+    time_limit_s: float,
+    seed: int,
+    padding_m: float,
+    scene: SceneKind = "primitives",
+    progress: TextIO | None = None,
+    perception: PerceptionConfig | None = None,
+) -> list[ProblemRecord]:
+    """Plan every problem, time each `plan` call and re-check every returned path on the meshes.
+
+    Args:
+        sets: Parsed problem families.
+        planner_id: Planner the requests name.
+        time_limit_s: Planning budget per problem [s].
+        seed: Seeds the shortcutting and the synthetic clouds (OMPL is seeded by the caller).
+        padding_m: Robot-vs-world padding of the planning world [m].
+        scene: 'primitives' plans against the obstacles themselves; 'cloud' against an occupancy
+            map of their sampled surfaces. The re-check always uses the primitives.
+        progress: Stream for the progress bar, or None.
+        perception: Occupancy map settings for `scene='cloud'`; None takes the defaults.
+
+    Returns:
+        One record per problem, in family and problem order.
+    """
+    total = sum(len(s.problems) for s in sets)
+    planner_config = PlannerConfig(allowed_planning_time_s=time_limit_s, range_rad=BENCH_RANGE_RAD,
+                                   edge_resolution_rad=BENCH_EDGE_RESOLUTION_RAD,
+                                   path_check_resolution_rad=BENCH_PATH_CHECK_RESOLUTION_RAD, seed=seed)
+    robots: dict[tuple[Any, ...], RobotModel] = {}
+    records: list[ProblemRecord] = []
+    for problem_set in sets:
+        robot_config = mbm_robot_config(problem_set, padding_m=padding_m)
+        key = (robot_config.joint_names, tuple(sorted(robot_config.fixed_joint_positions.items())),
+               robot_config.allowed_collision_pairs)
+        if key not in robots:
+            robots[key] = RobotModel.from_config(robot_config)
+        robot = robots[key]
+        checker = MeshCollisionChecker(robot)
+        for problem in problem_set.problems:
+            if progress is not None:
+                _draw_progress(progress, len(records), total, f"{problem_set.family} #{problem.index}")
+            records.append(_run_one(problem_set.family, problem, robot, checker, planner_config,
+                                    planner_id=planner_id, seed=seed, padding_m=padding_m, scene=scene,
+                                    perception=perception))
+    if progress is not None:
+        _draw_progress(progress, len(records), total, "done")
+        progress.write("\n")
+        progress.flush()
+    return records
+
+
+def _run_one(family: str, problem: MbmProblem, robot: RobotModel, checker: MeshCollisionChecker,
+             planner_config: PlannerConfig, *, planner_id: str, seed: int, padding_m: float,
+             scene: SceneKind, perception: PerceptionConfig | None) -> ProblemRecord:
+    world = CollisionWorld(robot, padding_m=padding_m)
+    if scene == "cloud":
+        binary, resolution_m = occupancy_of_objects(problem.obstacles, seed=seed + problem.index, config=perception)
+        world.set_octree(binary, resolution_m)
+    else:
+        world.set_objects(problem.obstacles)
+    planner = MotionPlanner(robot, world, planner_config)
+    goals = np.array(problem.goals_rad, dtype=np.float64)  # (G, n); MBM always has G = 1
+    request = PlanProblem(start_rad=problem.start, goals_rad=goals[0] if len(goals) == 1 else goals,
+                          planner_id=planner_id, allowed_planning_time_s=planner_config.allowed_planning_time_s,
+                          seed=seed, simplify=True)
+    t0, cpu0 = time.perf_counter(), time.thread_time()
+    outcome = planner.plan(request)
+    wall_ms = 1000.0 * (time.perf_counter() - t0)
+    cpu_ms = 1000.0 * (time.thread_time() - cpu0)
+    status = outcome.status.value if isinstance(outcome.status, PlanStatus) else str(outcome.status)
+    if outcome.path is None:
+        return ProblemRecord(family, problem.index, status, wall_ms, False, False, None, outcome.detail, cpu_ms)
+    checker.set_objects(problem.obstacles)
+    # A path may end at any goal of the set: hold it to the one it ends nearest to.
+    reached = goals[int(np.argmin(np.max(np.abs(goals - outcome.path[-1]), axis=1)))]
+    check = checker.check_path(outcome.path, start_rad=problem.start, goal_rad=reached)
+    return ProblemRecord(family, problem.index, status, wall_ms, True, check.valid,
+                         path_length_rad(outcome.path), outcome.detail if check.valid else check.detail, cpu_ms)
+
+
+def occupancy_of_objects(objects: Sequence[SceneObject], *, seed: int,
+                         config: PerceptionConfig | None = None) -> tuple[bytes, float]:
+    """The planning octree (inflated, octomap binary) of the objects' sampled surfaces.
+
+    The surfaces are sampled every `CLOUD_SPACING_M` and inserted in one scan from a point
+    above the scene, as a camera that sees every side would; one hit marks a voxel occupied.
+
+    Returns:
+        The octomap binary and its resolution [m].
+
+    Raises:
+        ValueError: some surface point lies beyond the map's `max_range_m` from the origin
+            (octomap would only clear along such rays, never mark their ends).
+    """
+    cfg = config if config is not None else PerceptionConfig()
+    points = sample_object_surfaces(objects, spacing_m=CLOUD_SPACING_M, rng=np.random.default_rng(seed))
+    occupancy = OccupancyMap(cfg)
+    if points.shape[0]:
+        low, high = points.min(axis=0), points.max(axis=0)
+        origin = np.array([0.5 * (low[0] + high[0]), 0.5 * (low[1] + high[1]), high[2] + CLOUD_ORIGIN_HEIGHT_M])
+        farthest = float(np.max(np.linalg.norm(points - origin, axis=1)))
+        if farthest > cfg.max_range_m:
+            raise ValueError(f"scene cloud reaches {farthest:.2f} m from the synthetic camera, beyond "
+                             f"perception max_range_m {cfg.max_range_m}")
+        occupancy.insert(points, origin)
+    return occupancy.planning_binary(), occupancy.resolution_m
+
+
+def summarize(records: Sequence[ProblemRecord]) -> dict[str, Any]:
+    """The summary of some records, keyed by `SUMMARY_KEYS`.
+
+    Times are over all problems (an unsolved one counts at its wall time); the length median
+    is over solved problems only (None when there are none). `invalid_paths` counts returned
+    paths that failed the fine re-check.
+    """
+    n = len(records)
+    solved = [r for r in records if r.solved]
+    wall = np.array([r.wall_ms for r in records], dtype=np.float64)
+    lengths = [r.length_rad for r in solved if r.length_rad is not None]
+    cpu = [r.cpu_ms for r in records if r.cpu_ms is not None]
+    return {
+        "problems": n,
+        "solved": len(solved),
+        "solved_pct": round(100.0 * len(solved) / n, 2) if n else 0.0,
+        "median_ms": _rounded(float(np.median(wall))) if n else None,
+        "p95_ms": _rounded(float(np.percentile(wall, 95))) if n else None,
+        "median_length": _rounded(float(np.median(lengths)), 4) if lengths else None,
+        "invalid_paths": sum(1 for r in records if r.returned_path and not r.path_valid),
+        "median_cpu_ms": _rounded(float(np.median(cpu))) if cpu and len(cpu) == n else None,
+    }
+
+
+def build_report(records: Sequence[ProblemRecord], *, config: dict[str, Any]) -> dict[str, Any]:
+    """`{"overall": summary, "families": {name: summary}, "config": config}`, families in record order."""
+    families: dict[str, list[ProblemRecord]] = {}
+    for r in records:
+        families.setdefault(r.family, []).append(r)
+    return {"overall": summarize(records),
+            "families": {name: summarize(rs) for name, rs in families.items()},
+            "config": config}
+
+
+def format_table(report: dict[str, Any]) -> str:
+    """The report's summaries as a fixed-width text table, one row per family and one overall."""
+    header = f"{'family':<18} {'problems':>8} {'solved':>6} {'solved %':>8} {'median ms':>10} {'p95 ms':>9} " \
+             f"{'median len':>10} {'invalid':>7} {'median cpu ms':>13}"
+    rows = [header, "-" * len(header)]
+    items = [*report["families"].items(), ("overall", report["overall"])]
+    for i, (name, s) in enumerate(items):
+        if i == len(items) - 1:
+            rows.append("-" * len(header))
+        rows.append(f"{name:<18} {s['problems']:>8} {s['solved']:>6} {s['solved_pct']:>8.1f} "
+                    f"{_cell(s['median_ms'], 1):>10} {_cell(s['p95_ms'], 1):>9} {_cell(s['median_length'], 3):>10} "
+                    f"{s['invalid_paths']:>7} {_cell(s.get('median_cpu_ms'), 1):>13}")
+    return "\n".join(rows)
+
+
+def _draw_progress(stream: TextIO, done: int, total: int, label: str) -> None:
+    filled = PROGRESS_WIDTH * done // total if total else PROGRESS_WIDTH
+    # Pad with spaces so a shorter label overwrites the end of a longer one.
+    stream.write(f"\r[{'#' * filled}{'.' * (PROGRESS_WIDTH - filled)}] {done}/{total} {label:<24}")
+    stream.flush()
+
+
+def _cell(value: float | None, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def _rounded(value: float, digits: int = 2) -> float:
+    return round(value, digits) if math.isfinite(value) else value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be an integer > 0, got {text}")
+    return value
+
+
+if __name__ == "__main__":
+    sys.exit(main())

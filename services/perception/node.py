@@ -1,0 +1,323 @@
+"""Perception service: camera clouds → occupancy map → `perception/occupancy` and `perception/clusters`.
+
+Frames are latest-only per camera: a slow cycle drops stale frames instead of queueing them.
+Every camera updates the same map. The robot's own points are removed at the joint state
+nearest the cloud stamp. Bad frames (undecodable, unknown camera, out of order, no joint
+state, no returns) are counted by reason (`perception/status`) and logged once per reason.
+"""
+
+from __future__ import annotations
+
+import bisect
+import collections
+import logging
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from robonav.pipeline.wire.messages import (
+    Clusters,
+    DepthImage,
+    JointState,
+    Occupancy,
+    PerceptionClearRequest,
+    PerceptionClearResponse,
+    PerceptionStatusRequest,
+    PerceptionStatusResponse,
+    PointCloud,
+)
+from robonav.pipeline.perception.cloud_pipeline import process_cloud_with_clearing
+from robonav.pipeline.perception.clusters import cluster_voxels
+from robonav.pipeline.perception.depth import depth_from_points
+from robonav.pipeline.perception.maps.octree import OccupancyMap
+from robonav.pipeline.perception.maps.projection import ProjectionOccupancyMap
+from robonav.pipeline.perception.self_filter import perception_filters
+from robonav.pipeline.robot.model import RobotModel
+from robonav.services.common import (
+    Node,
+    declare_latched_publisher,
+    decode_request,
+    guarded_queryable,
+    guarded_subscriber,
+    reply_ok,
+    run_service,
+)
+from robonav.services.config import RobonavConfig, perceived_world_from_camera
+from robonav.services.keys import Keys
+
+log = logging.getLogger("robonav.perception")
+
+JOINT_HISTORY = 256
+"""Joint states kept for matching cloud stamps (2.5 s at 100 Hz)."""
+MAX_JOINT_STATE_GAP_S = 0.25
+"""A cloud is used only if a joint state lies within this of its stamp [s]."""
+
+
+class JointHistory:
+    """Recent joint states by stamp, to pose the robot as it was when a cloud was taken."""
+
+    def __init__(self, joint_names: tuple[str, ...]) -> None:
+        self.joint_names = joint_names
+        self._stamps: collections.deque[float] = collections.deque(maxlen=JOINT_HISTORY)
+        self._positions: collections.deque[np.ndarray] = collections.deque(maxlen=JOINT_HISTORY)
+        self._lock = threading.Lock()
+
+    def add(self, state: JointState) -> None:
+        by_name = dict(zip(state.names, state.position.tolist()))
+        q = np.array([by_name[n] for n in self.joint_names])  # KeyError → dropped sample, counted
+        with self._lock:
+            if self._stamps and state.stamp < self._stamps[-1]:
+                return  # out of order; the history must stay sorted
+            self._stamps.append(state.stamp)
+            self._positions.append(q)
+
+    def nearest(self, stamp: float, *, max_gap_s: float) -> np.ndarray | None:
+        """The joint positions whose stamp is nearest `stamp`, if within `max_gap_s`."""
+        with self._lock:
+            if not self._stamps:
+                return None
+            stamps = list(self._stamps)
+            i = bisect.bisect_left(stamps, stamp)
+            candidates = [j for j in (i - 1, i) if 0 <= j < len(stamps)]
+            best = min(candidates, key=lambda j: abs(stamps[j] - stamp))
+            return self._positions[best] if abs(stamps[best] - stamp) <= max_gap_s else None
+
+
+class Drops:
+    """Frames not integrated, counted by reason; each reason is logged once."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def add(self, reason: str, detail: str) -> None:
+        with self._lock:
+            self.counts[reason] = self.counts.get(reason, 0) + 1
+            first = self.counts[reason] == 1
+        if first:
+            log.warning("dropping a frame (%s: %s); further ones of this kind are counted silently", reason, detail)
+
+
+class PerceptionNode(Node):
+    def __init__(self, cfg: RobonavConfig, session: zenoh.Session) -> None:
+        self.cfg = cfg
+        self.robot = RobotModel.from_config(cfg.robot)
+        self.self_filter, self.clear_filter = perception_filters(
+            self.robot.link_hull_vertices, self.robot.static_link_names, cfg.perception, cfg.robot.padding_m)
+        self.map: ProjectionOccupancyMap | OccupancyMap = (
+            ProjectionOccupancyMap(cfg.perception) if cfg.perception.clearing == "projection" else OccupancyMap(cfg.perception))
+        self.history = JointHistory(self.robot.joint_names)
+        self.cameras = {cam.camera_id: cam for cam in cfg.cameras}
+        self.world_from_camera = {cam.camera_id: perceived_world_from_camera(cam) for cam in cfg.cameras}
+        self.frames = 0
+        self.published = 0
+        self.drops = Drops()
+        self.last_stage_ms: dict[str, float] = {}
+        self._last_stamp: dict[str, float] = {}
+        self._cleared_at = -np.inf
+        """Wall time of the last perception/clear: frames taken before it are dropped."""
+        self._newest_stamp = 0.0
+        self._label_names: dict[int, str] = {}
+        self._pending: dict[str, zenoh.Sample] = {}  # latest unprocessed frame per key
+        self._pending_lock = threading.Lock()
+        self._wake = threading.Event()
+        self._map_lock = threading.Lock()
+        self._last_clusters = 0.0
+        keys = Keys(cfg.cell)
+        self._pub = declare_latched_publisher(session, keys.occupancy)
+        self._clusters_pub = session.declare_publisher(keys.clusters)
+        self._joint_sub = session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "perception"))
+        self._cloud_sub = session.declare_subscriber(keys.all_camera_clouds, self.on_frame)
+        self._depth_sub = session.declare_subscriber(keys.all_camera_depths, self.on_frame)
+        self._queryables = [
+            session.declare_queryable(keys.perception_clear, guarded_queryable(self.handle_clear, "perception")),
+            session.declare_queryable(keys.perception_status, guarded_queryable(self.handle_status, "perception")),
+        ]
+
+    def on_joint_state(self, sample: zenoh.Sample) -> None:
+        self.history.add(JointState.from_wire(sample.payload.to_bytes()))
+
+    def on_frame(self, sample: zenoh.Sample) -> None:
+        """Keep only the newest frame of each camera: a slow cycle skips frames, never queues them."""
+        key = str(sample.key_expr)
+        with self._pending_lock:
+            if key in self._pending:
+                self.drops.add("stale", f"a newer frame replaced an unprocessed one on {key}")
+            self._pending[key] = sample
+        self._wake.set()
+
+    def handle_clear(self, query: zenoh.Query) -> None:
+        decode_request(query, PerceptionClearRequest)
+        with self._map_lock:
+            cleared = self.map.voxel_count
+            self.map.clear()
+            # A frame taken before now (pending, or on its way) shows the world as it was: after
+            # a scene change it would put the old objects back into the emptied map.
+            self._cleared_at = time.time()
+        reply_ok(query, PerceptionClearResponse(cleared_voxels=cleared))
+        self._publish()
+
+    def handle_status(self, query: zenoh.Query) -> None:
+        decode_request(query, PerceptionStatusRequest)
+        with self._map_lock:
+            voxels = self.map.voxel_count
+        reply_ok(query, PerceptionStatusResponse(frames=self.frames, published=self.published,
+                                                 dropped=dict(self.drops.counts), occupied_voxels=voxels,
+                                                 stage_ms=dict(self.last_stage_ms)))
+
+    def _taken_before_clear(self, cloud: PointCloud | DepthImage) -> bool:
+        """Whether the frame predates the last perception/clear (then counted as dropped)."""
+        if cloud.stamp > self._cleared_at:
+            return False
+        self.drops.add("before_clear", f"camera {cloud.camera_id!r} frame taken before the last perception/clear")
+        return True
+
+    def process(self, sample: zenoh.Sample) -> bool:
+        """Integrate one frame; False (and counted) when it was dropped."""
+        is_depth = str(sample.key_expr).endswith("/depth")
+        try:
+            cloud = (DepthImage if is_depth else PointCloud).from_wire(sample.payload.to_bytes())
+        except Exception as exc:
+            self.drops.add("bad_message", f"{sample.key_expr}: {exc}")
+            return False
+        camera = self.cameras.get(cloud.camera_id)
+        if camera is None:
+            self.drops.add("unknown_camera", f"{cloud.camera_id!r} (configured: {sorted(self.cameras)})")
+            return False
+        if self._taken_before_clear(cloud):
+            return False
+        if cloud.stamp <= self._last_stamp.get(cloud.camera_id, -np.inf):
+            self.drops.add("out_of_order", f"camera {cloud.camera_id!r} stamp {cloud.stamp:.3f} is not newer than "
+                                           f"{self._last_stamp[cloud.camera_id]:.3f}")
+            return False
+        q = self.history.nearest(cloud.stamp, max_gap_s=MAX_JOINT_STATE_GAP_S)
+        if q is None:
+            # Without the arm's pose the robot cannot be filtered out and would enter the map
+            # as an obstacle around itself: better no update than that.
+            self.drops.add("no_joint_state", f"no joint state within {MAX_JOINT_STATE_GAP_S} s of the cloud stamp")
+            return False
+        self._last_stamp[cloud.camera_id] = cloud.stamp
+        world_from_camera = self.world_from_camera[cloud.camera_id]
+        world_from_link = self.robot.link_poses(q)
+        with self._map_lock:
+            if self._taken_before_clear(cloud):  # cleared while this frame was being prepared
+                return False
+            if isinstance(self.map, ProjectionOccupancyMap):
+                intrinsics = cloud.intrinsics or camera.intrinsics
+                t0 = time.perf_counter()
+                if isinstance(cloud, DepthImage):
+                    depth, labels = cloud.depth_m, cloud.labels
+                else:
+                    (depth, _), labels = depth_from_points(cloud.points, intrinsics), None
+                if cloud.label_names:
+                    self._label_names.update(cloud.label_names)
+                depth_ms = (time.perf_counter() - t0) * 1e3
+                if not np.isfinite(depth).any():
+                    # A frame without a single return says the sensor failed, not that the
+                    # world is empty: it must not clear the map.
+                    self.drops.add("empty", f"camera {cloud.camera_id!r} sent a frame without returns")
+                    return False
+                update = self.map.integrate_depth(depth, intrinsics, world_from_camera, self_filter=self.self_filter,
+                                                  world_from_link=world_from_link, labels=labels,
+                                                  clear_filter=self.clear_filter)
+                self.last_stage_ms = {"to_depth": depth_ms, **update.stage_ms}
+            elif isinstance(cloud, DepthImage):
+                self.drops.add("unsupported", "depth images need perception.clearing: projection")
+                return False
+            else:
+                # Points dropped by the crop or the self-filter still clear the space their rays
+                # crossed, so a moved arm or object leaves no ghost where nothing is seen behind it.
+                points_world, clear_only_world, stats = process_cloud_with_clearing(
+                    cloud.points, world_from_camera=world_from_camera, config=self.cfg.perception,
+                    self_filter=self.self_filter, world_from_link=world_from_link,
+                )
+                t0 = time.perf_counter()
+                self.map.insert(points_world, world_from_camera[:3, 3], clear_only_world=clear_only_world)
+                # Voxels inside the robot are traces of the arm that its body now hides from every ray.
+                self.map.free_voxels_where(lambda centres: ~self.clear_filter.outside_mask(centres, world_from_link))
+                self.last_stage_ms = {**stats.stage_ms, "raycast": (time.perf_counter() - t0) * 1e3}
+        self._newest_stamp = max(self._newest_stamp, cloud.stamp)
+        self.frames += 1
+        return True
+
+    def _publish(self) -> None:
+        t0 = time.perf_counter()
+        with self._map_lock:
+            binary = self.map.planning_binary()
+            centres = self.map.occupied_centers_m().astype(np.float32)
+            clusters = self._clusters() if self._clusters_due() else None
+        self.published += 1
+        self._pub.put(Occupancy(stamp=self._newest_stamp, resolution_m=self.cfg.perception.resolution_m,
+                                octomap_binary=binary, occupied_centers_m=centres, seq=self.published).to_wire())
+        if clusters is not None:
+            self._clusters_pub.put(clusters.to_wire())
+        self.last_stage_ms["publish"] = (time.perf_counter() - t0) * 1e3
+        if self.published == 1:
+            log.info("first occupancy map: %d voxels", centres.shape[0])
+
+    def _clusters_due(self) -> bool:
+        now = time.monotonic()
+        if now - self._last_clusters < 1.0 / self.cfg.perception.clusters_rate_hz:
+            return False
+        self._last_clusters = now
+        return True
+
+    def _clusters(self) -> Clusters:
+        res = self.cfg.perception.resolution_m
+        if isinstance(self.map, ProjectionOccupancyMap):
+            occupied = self.map.occupied_indices()
+            ijk, centres, labels = self.map.ijk(occupied), self.map.centres_m(occupied), self.map.labels_of(occupied)
+        else:
+            centres = self.map.occupied_centers_m()
+            ijk, labels = np.floor(centres / res).astype(np.int64), None
+        found = cluster_voxels(ijk, centres, res, labels=labels, method=self.cfg.perception.clustering,
+                               min_voxels=self.cfg.perception.cluster_min_voxels)
+        names = tuple(self._label_names.get(int(i), "") for i in found.label_ids)
+        return Clusters(stamp=self._newest_stamp, ids=np.arange(found.count, dtype=np.int32),
+                        centroids_m=found.centroids_m.astype(np.float32), bbox_min_m=found.bbox_min_m.astype(np.float32),
+                        bbox_max_m=found.bbox_max_m.astype(np.float32), voxel_counts=found.voxel_counts.astype(np.int32),
+                        labels=names, seq=self.published)
+
+    def _take_pending(self) -> zenoh.Sample | None:
+        with self._pending_lock:
+            if not self._pending:
+                return None
+            key = next(iter(self._pending))  # insertion order: the camera waiting longest
+            return self._pending.pop(key)
+
+    def spin(self, stop: threading.Event) -> None:
+        min_period_s = 1.0 / self.cfg.perception.max_update_rate_hz
+        last = 0.0
+        while not stop.is_set():
+            sample = self._take_pending()
+            if sample is None:
+                self._wake.wait(0.05)
+                self._wake.clear()
+                continue
+            wait_s = last + min_period_s - time.monotonic()
+            if wait_s > 0:
+                stop.wait(wait_s)  # rate limit; a newer frame may replace this one meanwhile
+                with self._pending_lock:
+                    sample = self._pending.pop(str(sample.key_expr), sample)
+            last = time.monotonic()
+            try:
+                if self.process(sample):
+                    self._publish()
+            except Exception:  # a service never dies on input
+                log.exception("perception: frame failed")
+                self.drops.add("internal_error", "see the log")
+
+    def close(self) -> None:
+        for q in self._queryables:
+            q.undeclare()
+        self._cloud_sub.undeclare()
+        self._depth_sub.undeclare()
+        self._joint_sub.undeclare()
+        self._clusters_pub.undeclare()
+        self._pub.undeclare()
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("perception", argv, PerceptionNode)

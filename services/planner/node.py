@@ -1,0 +1,189 @@
+"""Planner service: answers `planner/plan` with collision-free joint paths.
+
+Keeps the latest occupancy map (as an FCL octree) and the latest joint state (the default
+start), and hands each request to `MotionPlanner`.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.wire.joint_order import reorder_to_robot
+from robonav.pipeline.wire.messages import JointState, Occupancy, PlanRequest, PlanResponse
+from robonav.pipeline.planning.motion_planner import PLANNERS, MotionPlanner, PlanProblem, PoseGoal
+from robonav.pipeline.planning.ompl_planners import seed_ompl_once
+from robonav.pipeline.planning.result import PlanStatus
+from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.transforms import make_transform
+from robonav.pipeline.wire.codec import ErrorCode, ProtocolError
+from robonav.services.common import (Node, declare_latched_subscriber, guarded_queryable, guarded_subscriber, decode_request, reply_error,
+                                     reply_ok, run_service)
+from robonav.services.config import RobonavConfig
+from robonav.services.keys import Keys
+from robonav.services.planner.scene import PlanningScene
+
+log = logging.getLogger("robonav.planner")
+
+STATUS_CODES = {
+    PlanStatus.START_INVALID: ErrorCode.START_IN_COLLISION,
+    PlanStatus.GOAL_INVALID: ErrorCode.GOAL_IN_COLLISION,
+    PlanStatus.GOAL_UNREACHABLE: ErrorCode.GOAL_UNREACHABLE,
+    PlanStatus.OUT_OF_BOUNDS: ErrorCode.OUT_OF_JOINT_LIMITS,
+    PlanStatus.TIMEOUT: ErrorCode.NO_SOLUTION,
+}
+
+
+class PlannerNode(Node):
+    def __init__(self, cfg: RobonavConfig, session: zenoh.Session) -> None:
+        self.cfg = cfg
+        self.robot = RobotModel.from_config(cfg.robot)
+        self.world = CollisionWorld(self.robot, padding_m=cfg.robot.padding_m)
+        self.planner = MotionPlanner(self.robot, self.world, cfg.planner)
+        seed_ompl_once(cfg.planner.seed)
+        self._lock = threading.Lock()  # one plan at a time; map swaps wait for it
+        self._state_lock = threading.Lock()
+        self._joint_state: JointState | None = None
+        self._pending_map: Occupancy | None = None
+        self._map_stamp: float | None = None
+        self._map_received_monotonic: float | None = None
+        self._first_map = threading.Event()
+        keys = Keys(cfg.cell)
+        self._subs = [
+            session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "planner")),
+            declare_latched_subscriber(session, keys.occupancy, guarded_subscriber(self.on_occupancy, "planner")),
+        ]
+        # complete: any one planner can answer a plan request, so a best-matching query reaches
+        # exactly one of several replicas (a client races them all with target ALL).
+        self._queryable = session.declare_queryable(keys.plan, guarded_queryable(self.handle_plan, "planner"),
+                                                    complete=True)
+        self.scene = PlanningScene(self.world, self._lock, current_q=self._start_from_joint_state)
+        self._scene_queryable = session.declare_queryable(keys.scene, guarded_queryable(self.scene.handle_scene, "planner"))
+
+    def on_joint_state(self, sample: zenoh.Sample) -> None:
+        state = JointState.from_wire(sample.payload.to_bytes())
+        with self._state_lock:
+            self._joint_state = state
+
+    def on_occupancy(self, sample: zenoh.Sample) -> None:
+        occupancy = Occupancy.from_wire(sample.payload.to_bytes())
+        with self._state_lock:
+            self._pending_map = occupancy
+            self._map_received_monotonic = time.monotonic()
+        self._first_map.set()
+
+    def _apply_pending_map(self) -> None:
+        with self._state_lock:
+            pending, self._pending_map = self._pending_map, None
+        if pending is not None:
+            self.world.set_octree(pending.octomap_binary, pending.resolution_m, pending.occupied_centers_m)
+            self._map_stamp = pending.stamp
+
+    def _start_from_joint_state(self) -> np.ndarray:
+        with self._state_lock:
+            state = self._joint_state
+        if state is None:
+            raise ProtocolError(ErrorCode.NO_JOINT_STATE, "no start_positions given and no joint state received yet")
+        by_name = dict(zip(state.names, state.position.tolist()))
+        missing = [n for n in self.robot.joint_names if n not in by_name]
+        if missing:
+            raise ProtocolError(ErrorCode.NO_JOINT_STATE, f"the latest joint state lacks joints {missing}")
+        return np.array([by_name[n] for n in self.robot.joint_names])
+
+    def _check_map(self) -> None:
+        if not self.cfg.planner.require_occupancy:
+            return
+        # A request that races the very first map (services just started) waits for it briefly.
+        self._first_map.wait(self.cfg.planner.first_map_wait_s)
+        with self._state_lock:
+            received = self._map_received_monotonic
+        if received is None:
+            raise ProtocolError(ErrorCode.OCCUPANCY_MISSING, "no occupancy map received yet")
+        age = time.monotonic() - received
+        if age > self.cfg.planner.occupancy_max_age_s:
+            raise ProtocolError(ErrorCode.OCCUPANCY_STALE,
+                                f"newest occupancy map is {age:.1f} s old (limit {self.cfg.planner.occupancy_max_age_s} s)",
+                                {"age_s": age})
+
+    def handle_plan(self, query: zenoh.Query) -> None:
+        request = decode_request(query, PlanRequest)
+        names = self.robot.joint_names
+        if request.start_positions is not None:
+            start = reorder_to_robot(request.start_positions, request.joint_names, names, "start_positions")
+        else:
+            start = self._start_from_joint_state()
+        planner_id = request.planner_id or self.cfg.planner.planner_id
+        if planner_id not in PLANNERS:
+            raise ProtocolError(ErrorCode.UNKNOWN_PLANNER, f"unknown planner_id {planner_id!r}", {"known": list(PLANNERS)})
+        self._check_map()
+        problem = PlanProblem(
+            start_rad=start, goals_rad=self._joint_goals(request), pose_goal=self._pose_goal(request),
+            planner_id=planner_id,
+            allowed_planning_time_s=request.allowed_planning_time or self.cfg.planner.allowed_planning_time_s,
+            num_planning_attempts=request.num_planning_attempts or 1,
+            seed=request.seed if request.seed is not None else self.cfg.planner.seed,
+            simplify=self.cfg.planner.simplify if request.simplify is None else request.simplify,
+            goal_tolerance_rad=request.goal_tolerance_rad or 0.0,
+            workspace_min_m=request.workspace_min_m, workspace_max_m=request.workspace_max_m,
+        )
+        with self._lock:
+            self._apply_pending_map()
+            try:
+                outcome = self.planner.plan(problem)
+            except ValueError as exc:  # shapes and values the decoder cannot know about
+                raise ProtocolError(ErrorCode.INVALID_REQUEST, str(exc)) from exc
+            map_stamp = self._map_stamp or 0.0
+        if outcome.status is not PlanStatus.SUCCESS or outcome.path is None:
+            reply_error(query, STATUS_CODES[outcome.status], outcome.detail, outcome.details)
+            return
+        log.info("planned with %s: %d waypoints, %.1f ms, length %.2f rad%s", outcome.planner_id, len(outcome.path),
+                 outcome.planning_time_s * 1e3, outcome.path_length_rad,
+                 "; first left the start's padding" if "start_escape" in outcome.details else "")
+        reply_ok(query, PlanResponse(
+            joint_names=names, path=outcome.path, planner_id=outcome.planner_id, goal_index=outcome.goal_index,
+            goal_positions=outcome.path[-1],
+            planning_time_s=outcome.planning_time_s, simplification_time_s=outcome.simplification_time_s,
+            path_length_rad=outcome.path_length_rad, max_joint_step_rad=outcome.max_joint_step_rad,
+            min_clearance_m=outcome.min_clearance_m if np.isfinite(outcome.min_clearance_m) else None,
+            waypoint_count=len(outcome.path), occupancy_stamp=map_stamp,
+            max_velocity_scaling_factor=request.max_velocity_scaling_factor,
+            max_acceleration_scaling_factor=request.max_acceleration_scaling_factor,
+            request_id=request.request_id, start_escaped="start_escape" in outcome.details,
+        ))
+
+    def _joint_goals(self, request: PlanRequest) -> np.ndarray | None:
+        names = self.robot.joint_names
+        if request.goal_positions is not None:
+            return reorder_to_robot(request.goal_positions, request.joint_names, names, "goal_positions")
+        if request.goal_set is not None:
+            return np.array([reorder_to_robot(g, request.joint_names, names, f"goal_set[{k}]")
+                             for k, g in enumerate(request.goal_set)])
+        return None
+
+    def _pose_goal(self, request: PlanRequest) -> PoseGoal | None:
+        if request.goal_position_m is None:
+            return None
+        link = request.goal_link or self.robot.config.end_effector_link  # an unknown link fails in IK: INVALID_REQUEST
+        quat = request.goal_quat_xyzw if request.goal_quat_xyzw is not None else np.array([0.0, 0.0, 0.0, 1.0])
+        return PoseGoal(
+            link=link, world_from_target=make_transform(request.goal_position_m, quat / np.linalg.norm(quat)),
+            position_tolerance_m=request.position_tolerance_m if request.position_tolerance_m is not None else 1e-3,
+            orientation_tolerance_rad=(None if request.goal_quat_xyzw is None else
+                                       request.orientation_tolerance_rad if request.orientation_tolerance_rad is not None
+                                       else 0.01),
+        )
+
+    def close(self) -> None:
+        self._queryable.undeclare()
+        self._scene_queryable.undeclare()
+        for sub in self._subs:
+            sub.undeclare()
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("planner", argv, PlannerNode)

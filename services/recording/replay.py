@@ -1,0 +1,257 @@
+"""`robonav replay run.mcap`: publish a recording's raw payloads back on their keys.
+
+Messages go out in file (= receive) order, each at its recorded receive time scaled by
+`--rate` (or as fast as possible with `--rate max`), byte for byte as recorded, so
+perception and the planner run on recorded clouds exactly as live. A child process reads
+and decompresses ahead (`replay_reader.py`), so the publishing loop only waits on the clock:
+it sleeps until `SPIN_S` before a message is due, then spins. Publishers block rather than drop under
+congestion: a replay loses nothing. A truncated or corrupt file is an error naming the byte
+offset (exit code 2); `--check` reads the whole file without publishing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import queue
+import signal
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from robonav.pipeline.config import ConfigError
+from robonav.services.common import open_session, setup_logging, stop_on_signals
+from robonav.services.config import load_config
+from robonav.services.recording.files import Recording, RecordingError
+from robonav.services.recording.reader import ReadAhead
+
+log = logging.getLogger("robonav.replay")
+
+SPIN_S = 0.002
+"""The publishing loop spins (instead of sleeping) this long before a message is due [s]."""
+READ_AHEAD_BYTES = 256 * 2**20
+READ_AHEAD_MAX_ITEMS = 4096
+PREFILL_TIMEOUT_S = 2.0
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    rate: float | None = 1.0
+    """Speed factor on the recorded timing; None publishes as fast as possible."""
+    loop: bool = False
+    keys: tuple[str, ...] = ()
+    """Key expressions to replay (wildcards allowed); empty replays every recorded key."""
+    start_s: float | None = None
+    """Skip messages received earlier than this after the recording's first message [s]."""
+    end_s: float | None = None
+    """Stop at messages received later than this after the recording's first message [s]."""
+
+    def __post_init__(self) -> None:
+        if self.rate is not None and not self.rate > 0:
+            raise ValueError(f"rate must be > 0 (or 'max'), got {self.rate}")
+        for name in ("start_s", "end_s"):
+            value = getattr(self, name)
+            if value is not None and not value >= 0:
+                raise ValueError(f"{name} must be >= 0 seconds from the recording's start, got {value}")
+        if self.start_s is not None and self.end_s is not None and self.end_s < self.start_s:
+            raise ValueError(f"end ({self.end_s} s) is before start ({self.start_s} s)")
+
+
+@dataclass
+class ReplayResult:
+    published: Counter[str]
+    bytes: int
+    loops: int
+    wall_s: float
+    timing_error_s: list[float]
+    """Publish time minus due time of every message but each loop's first (rate set only)."""
+
+    def summary(self) -> dict[str, Any]:
+        errors_ms = np.abs(np.asarray(self.timing_error_s)) * 1e3
+        timing = ({"p50_ms": float(np.percentile(errors_ms, 50)), "p99_ms": float(np.percentile(errors_ms, 99)),
+                   "max_ms": float(errors_ms.max()), "samples": int(errors_ms.size)} if errors_ms.size else None)
+        return {"published": sum(self.published.values()), "per_key": dict(sorted(self.published.items())),
+                "mb": round(self.bytes / 2**20, 1), "loops": self.loops, "wall_s": round(self.wall_s, 3),
+                "timing_error": timing}
+
+
+class Replayer:
+    """Publishes a recording's messages on a session with their recorded timing."""
+
+    def __init__(self, session: zenoh.Session, recording: Recording, options: ReplayOptions) -> None:
+        self.recording = recording
+        self.options = options
+        self._session = session
+        start = recording.info.start_ns
+        self._start_ns = None if options.start_s is None else start + int(options.start_s * 1e9)
+        self._end_ns = None if options.end_s is None else start + int(options.end_s * 1e9)
+        selectors = [zenoh.KeyExpr(k) for k in options.keys]
+        keys = [k for k in recording.info.message_counts
+                if not selectors or any(s.intersects(zenoh.KeyExpr(k)) for s in selectors)]
+        self.publishers = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
+                           for k in keys}
+
+    def wait_for_subscribers(self, timeout_s: float) -> bool:
+        """Wait until some recorded key has a subscriber (or the timeout passes)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if any(p.matching_status.matching for p in self.publishers.values()):
+                return True
+            time.sleep(0.01)
+        return any(p.matching_status.matching for p in self.publishers.values())
+
+    def run(self, stop: threading.Event) -> ReplayResult:
+        """Publish until the recording (or the last loop) ends or `stop` is set.
+
+        Raises:
+            RecordingError: the file is damaged; messages before the damage were published.
+        """
+        typical = max(1, self.recording.size // max(1, sum(self.recording.info.message_counts.values())))
+        max_items = min(READ_AHEAD_MAX_ITEMS, max(16, READ_AHEAD_BYTES // typical))
+        reader = ReadAhead(self.recording, keys=self.options.keys, start_ns=self._start_ns, end_ns=self._end_ns,
+                           loop=self.options.loop, max_items=max_items)
+        try:
+            # Start the clock with a filled read-ahead queue: the first chunks decompress meanwhile.
+            deadline = time.monotonic() + PREFILL_TIMEOUT_S
+            while reader.alive and reader.items.qsize() < max_items // 2 and time.monotonic() < deadline:
+                stop.wait(0.01)
+            result = ReplayResult(Counter(), 0, 0, 0.0, [])
+            t_start = time.perf_counter()
+            try:
+                self._publish_loop(reader, stop, result)
+            finally:
+                result.wall_s = time.perf_counter() - t_start
+        finally:
+            reader.close()
+        return result
+
+    def _publish_loop(self, reader: ReadAhead, stop: threading.Event, result: ReplayResult) -> None:
+        rate = self.options.rate
+        loop_base_s = time.perf_counter()
+        current_loop, first_ns, last_ns, gaps_ns = -1, 0, 0, 0.0
+        while not stop.is_set():
+            try:
+                item = reader.get(timeout_s=0.1)
+            except queue.Empty:
+                continue
+            if item is None:
+                return
+            loop, message = item
+            first_of_loop = loop != current_loop
+            if first_of_loop:
+                if current_loop >= 0 and rate is not None:
+                    # The next pass starts one typical message gap after the last one.
+                    loop_base_s += ((last_ns - first_ns) + gaps_ns) / 1e9 / rate
+                elif rate is not None:
+                    loop_base_s = time.perf_counter()
+                current_loop, first_ns = loop, message.receive_time_ns
+                result.loops = loop + 1
+            if rate is not None:
+                due_s = loop_base_s + (message.receive_time_ns - first_ns) / 1e9 / rate
+                _sleep_until(due_s, stop)
+                sent_s = time.perf_counter()
+                if not first_of_loop:
+                    result.timing_error_s.append(sent_s - due_s)
+            elif stop.is_set():
+                return
+            self.publishers[message.key].put(message.payload)
+            result.published[message.key] += 1
+            result.bytes += len(message.payload)
+            if loop == 0 and not first_of_loop:
+                count = sum(result.published.values())
+                gaps_ns = (message.receive_time_ns - first_ns) / max(1, count - 1)
+            last_ns = message.receive_time_ns
+
+    def close(self) -> None:
+        for pub in self.publishers.values():
+            pub.undeclare()
+
+
+def _sleep_until(due_s: float, stop: threading.Event) -> None:
+    while (remaining := due_s - time.perf_counter()) > 0 and not stop.is_set():
+        if remaining > SPIN_S:
+            time.sleep(remaining - SPIN_S)
+        else:
+            time.sleep(0)  # lets the receiving thread take the GIL while spinning
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="robonav replay", description=__doc__.split("\n\n")[0])
+    parser.add_argument("file", help="MCAP recording written by `robonav record`")
+    parser.add_argument("--rate", default="1", help="speed factor on the recorded timing, or 'max' (default 1)")
+    parser.add_argument("--loop", action="store_true", help="start over at the end, until Ctrl-C")
+    parser.add_argument("--keys", nargs="+", default=[], metavar="KEYEXPR", help="replay only these key expressions")
+    parser.add_argument("--start", type=float, help="skip the first START seconds of the recording")
+    parser.add_argument("--end", type=float, help="stop END seconds after the recording's start")
+    parser.add_argument("--check", action="store_true", help="read and verify the whole file, publish nothing")
+    parser.add_argument("--wait-subscribers", type=float, default=2.0, metavar="S",
+                        help="wait up to S seconds for a subscriber before publishing (default 2)")
+    parser.add_argument("--config", help="YAML config (Zenoh connection)")
+    parser.add_argument("--json", help="write the summary (counts, timing error) to this file")
+    parser.add_argument("--log-level", default="INFO")
+    return parser.parse_args(argv)
+
+
+def check(recording: Recording) -> dict[str, Any]:
+    """Read every message (decompressing and checking every chunk's CRC); counts per key."""
+    counts: Counter[str] = Counter()
+    for message in recording.messages():
+        counts[message.key] += 1
+    expected = recording.info.message_counts
+    if dict(counts) != {k: v for k, v in expected.items() if v}:
+        raise RecordingError(recording.path, 0, f"message counts {dict(counts)} differ from the summary's {expected}")
+    return {"file": str(recording.path), "messages": sum(counts.values()), "per_key": dict(sorted(counts.items())),
+            "duration_s": round(recording.info.duration_s, 3)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    setup_logging(args.log_level)
+    try:
+        options = ReplayOptions(rate=None if args.rate == "max" else float(args.rate), loop=args.loop,
+                                keys=tuple(args.keys), start_s=args.start, end_s=args.end)
+        for key in options.keys:
+            zenoh.KeyExpr(key)
+        cfg = load_config(args.config)
+        recording = Recording(args.file)
+        if args.check:
+            summary = check(recording)
+            _report(summary, args.json)
+            return 0
+    except (ValueError, ConfigError, zenoh.ZError, RecordingError) as exc:
+        log.error("%s", exc)
+        return 2
+    stop = stop_on_signals(signal.SIGINT, signal.SIGTERM)
+    with open_session(cfg.zenoh) as session:
+        replayer = Replayer(session, recording, options)
+        if not replayer.publishers:
+            log.error("no recorded key matches %s (recorded: %s)", list(options.keys),
+                      sorted(recording.info.message_counts))
+            return 2
+        if not replayer.wait_for_subscribers(args.wait_subscribers):
+            log.warning("no subscriber for any recorded key after %.1f s; publishing anyway", args.wait_subscribers)
+        log.info("replaying %s (%.1f s, %d messages) at rate %s", args.file, recording.info.duration_s,
+                 sum(recording.info.message_counts.values()), args.rate)
+        try:
+            result = replayer.run(stop)
+        except RecordingError as exc:
+            log.error("%s", exc)
+            return 2
+        finally:
+            replayer.close()
+    _report(result.summary(), args.json)
+    return 0
+
+
+def _report(summary: dict[str, Any], json_path: str | None) -> None:
+    text = json.dumps(summary, indent=2)
+    print(text, flush=True)
+    if json_path:
+        Path(json_path).write_text(text + "\n", encoding="utf-8")

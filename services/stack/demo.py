@@ -1,0 +1,169 @@
+"""`robonav demo`: bring the stack up, plan and execute the configured goals, print a JSON summary.
+
+Exit code 0 only if every goal was reached within tolerance with zero robot–obstacle contacts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.config import ConfigError
+from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, PlanResponse
+from robonav.pipeline.robot.model import RobotModel
+from robonav.services.client import QueryFailed, RobonavClient
+from robonav.services.common import open_session, setup_logging, stop_on_signals
+from robonav.services.config import RobonavConfig, default_config_path, load_config
+from robonav.services.keys import SERVICES
+from robonav.services.stack.up import Stack
+from robonav.services.view.snapshot import snapshot_view
+
+log = logging.getLogger("robonav.demo")
+
+SERVICE_START_TIMEOUT_S = 60.0
+SETTLE_TIMEOUT_S = 2.0
+"""Longest wait after a trajectory ends for the arm to come within tolerance of the goal [s]."""
+
+
+def write_seeded_config(source: Path, seed: int, directory: Path) -> Path:
+    """A copy of `source` with `planner.seed` set, so the planner process samples reproducibly."""
+    data = yaml.safe_load(source.read_text(encoding="utf-8")) or {}
+    data.setdefault("planner", {})["seed"] = seed
+    out = directory / "demo-config.yaml"
+    out.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    return out
+
+
+def true_scene(cfg: RobonavConfig) -> CollisionWorld:
+    """The sim's obstacles as the planner's collision world, unpadded: ground truth for the report."""
+    world = CollisionWorld(RobotModel.from_config(cfg.robot), padding_m=0.0)
+    world.set_objects(cfg.sim.objects)
+    return world
+
+
+def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, index: int, goal: np.ndarray,
+             seed: int) -> dict[str, Any]:
+    assert client.joint_state is not None
+    start = client.joint_state.position.copy()
+    # Blocked means the goal needs a detour around a real obstacle.
+    record: dict[str, Any] = {"index": index, "goal_rad": goal.round(4).tolist(),
+                              "straight_line_blocked": not truth.motion_valid(start, goal, 0.01)}
+    plan = client.plan(goal, seed=seed + index, request_id=f"demo-{index}")
+    if isinstance(plan, ErrorReply):
+        record.update(reached=False, error=f"plan: {plan.code}: {plan.message}")
+        return record
+    assert isinstance(plan, PlanResponse)
+    record.update(planning_ms=round(plan.planning_time_s * 1e3, 2), path_length_rad=round(plan.path_length_rad, 4),
+                  waypoints=plan.waypoint_count,
+                  min_clearance_m=None if plan.min_clearance_m is None else round(plan.min_clearance_m, 4))
+    started = time.monotonic()
+    # A map that changes under the moving arm (noise, a newly seen surface) should cost a
+    # replan, not the goal.
+    execution = client.execute(plan.path, joint_names=plan.joint_names, replan=True, occupancy_stamp=plan.occupancy_stamp)
+    if isinstance(execution, ErrorReply):
+        record.update(reached=False, error=f"execute: {execution.code}: {execution.message}")
+        return record
+    assert isinstance(execution, ExecuteResponse)
+    result = client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + cfg.demo.goal_timeout_s)
+    # The arm lags the last setpoint a little (and more on a loaded machine): let it settle
+    # well inside the tolerance, or give up after a while and judge where it is.
+    client.wait_for(lambda: float(np.max(np.abs(client.joint_state.position - goal))) <= 0.1 * cfg.demo.goal_tolerance_rad,
+                    SETTLE_TIMEOUT_S)
+    final = client.joint_state.position
+    error = float(np.max(np.abs(final - goal)))
+    record.update(execution_s=round(time.monotonic() - started, 3), trajectory_duration_s=round(execution.duration_s, 3),
+                  result=result, final_error_rad=round(error, 5),
+                  reached=bool(result == "succeeded" and error <= cfg.demo.goal_tolerance_rad))
+    return record
+
+
+def run_demo(cfg: RobonavConfig, config_path: Path, seed: int, *, view_port: int | None = None,
+             snapshot: Path | None = None) -> dict[str, Any]:
+    """`view_port`: also run `robonav view` there and keep everything up after the goals until
+    Ctrl-C; `snapshot`: write a PNG of the final scene (see `robonav view --snapshot`)."""
+    started = time.monotonic()
+    truth = true_scene(cfg)
+    stack = Stack(cfg, str(config_path), view_port=view_port)
+    summary: dict[str, Any] = {"seed": seed, "goals": [], "goal_count": len(cfg.demo.goals_rad)}
+    try:
+        with open_session(cfg.zenoh) as session:
+            client = RobonavClient(session, cfg.cell)
+            missing = client.wait_for_services(SERVICES, SERVICE_START_TIMEOUT_S)
+            if missing:
+                raise RuntimeError(f"services not up after {SERVICE_START_TIMEOUT_S:.0f} s: {sorted(missing)}; exited: {stack.dead()}")
+            if not client.wait_for(lambda: client.occupancy is not None and client.joint_state is not None,
+                                   cfg.demo.first_map_timeout_s):
+                raise RuntimeError(f"no occupancy map within {cfg.demo.first_map_timeout_s:.0f} s")
+            summary["first_map_s"] = round(time.monotonic() - started, 2)
+            for index, goal in enumerate(cfg.demo.goals_rad):
+                # Plan on a map taken with the arm at rest, so no trace of its motion remains.
+                at_rest = time.time()
+                client.wait_for(lambda: client.occupancy is not None and client.occupancy.stamp > at_rest, 5.0)
+                try:
+                    record = run_goal(client, truth, cfg, index, np.asarray(goal, float), seed)
+                except QueryFailed as exc:
+                    record = {"index": index, "reached": False, "error": str(exc)}
+                log.info("goal %d: %s", index, record)
+                summary["goals"].append(record)
+            contacts = client.contacts()
+            if isinstance(contacts, ErrorReply):
+                raise RuntimeError(f"contacts query failed: {contacts.code}: {contacts.message}")
+            summary.update(contacts=contacts.contact_count, contact_pairs=list(contacts.pairs),
+                           min_obstacle_distance_m=None if contacts.min_distance_m is None else round(contacts.min_distance_m, 4))
+            if snapshot is not None:
+                summary.update(snapshot_view(cfg, snapshot))
+            if view_port is not None:
+                log.warning("demo done; the view stays on http://127.0.0.1:%d until Ctrl-C", view_port)
+                stop_on_signals(signal.SIGINT, signal.SIGTERM).wait()
+            client.close()
+    finally:
+        summary["service_exit_codes"] = stack.close()
+    summary["reached"] = sum(1 for g in summary["goals"] if g.get("reached"))
+    summary["wall_time_s"] = round(time.monotonic() - started, 2)
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="robonav demo", description=__doc__)
+    parser.add_argument("--config", help="YAML config file (default: the packaged configs/default.yaml)")
+    parser.add_argument("--seed", type=int, default=0, help="seeds the planner's sampler and shortcutting")
+    parser.add_argument("--json", dest="json_path", help="also write the summary to this file")
+    parser.add_argument("--view", action="store_true", help="also serve the live 3D view; stay up until Ctrl-C")
+    parser.add_argument("--view-port", type=int, default=8080, help="port of the view (default %(default)s)")
+    parser.add_argument("--snapshot", metavar="OUT.png", help="write a picture of the final scene (needs chromium)")
+    parser.add_argument("--log-level", default="WARNING")
+    args = parser.parse_args(argv)
+    setup_logging(args.log_level)
+    source = Path(args.config) if args.config else default_config_path()
+    with tempfile.TemporaryDirectory(prefix="robonav-demo-") as tmp:
+        try:
+            config_path = write_seeded_config(source, args.seed, Path(tmp))
+            cfg = load_config(config_path)
+        except (ConfigError, OSError, yaml.YAMLError) as exc:
+            log.error("%s", exc)
+            return 2
+        if len(cfg.demo.goals_rad) == 0:
+            log.error("%s: demo.goals_rad is empty", source)
+            return 2
+        try:
+            summary = run_demo(cfg, config_path, args.seed, view_port=args.view_port if args.view else None,
+                               snapshot=Path(args.snapshot) if args.snapshot else None)
+        except RuntimeError as exc:
+            log.error("demo failed: %s", exc)
+            return 1
+    text = json.dumps(summary, indent=2)
+    print(text)
+    if args.json_path:
+        Path(args.json_path).write_text(text + "\n", encoding="utf-8")
+    ok = summary["reached"] == summary["goal_count"] and summary["contacts"] == 0 and "snapshot_error" not in summary
+    return 0 if ok else 1

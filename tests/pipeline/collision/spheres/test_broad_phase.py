@@ -1,0 +1,224 @@
+"""Sphere broad phase: conservative against FCL, same CollisionWorld answers with and without it."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import octomap
+import pytest
+
+from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
+from robonav.pipeline.collision.world import CollisionWorld, _bisection_order
+from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.scene import SceneObject
+from ....conftest import MBM_DIR
+
+MBM_BOX = MBM_DIR / "box.json"
+"""The shared MotionBenchMaker data next to the repository (or where ROBONAV_MBM_DIR points)."""
+
+
+@pytest.fixture(scope="module")
+def panda() -> RobotModel:
+    """Open fingers; finger-finger and hand-link6 allowed as in MBM (their spheres, unlike their hulls, touch at home)."""
+    return RobotModel.from_config(RobotConfig(
+        fixed_joint_positions={"panda_finger_joint1": 0.04, "panda_finger_joint2": 0.04},
+        allowed_collision_pairs=(("panda_leftfinger", "panda_rightfinger"), ("panda_hand", "panda_link6"))))
+
+
+def _mbm_like_scene() -> list[SceneObject]:
+    """Problem 1 of MBM's `box` family when the benchmark is present, else a similar hand-made clutter."""
+    if MBM_BOX.is_file():
+        raw = json.loads(MBM_BOX.read_text())["problems"][0]["obstacles"]
+        return [SceneObject(o["name"], o["type"], tuple(o["position"]), tuple(o["orientation_xyzw"]),
+                            size_m=tuple(o["size"]) if o["type"] == "box" else None,
+                            radius_m=o.get("radius"), length_m=o.get("length")) for o in raw]
+    return [SceneObject("floor", "box", (0.5, 0.0, -0.02), size_m=(0.6, 0.8, 0.04)),
+            SceneObject("back", "box", (0.8, 0.0, 0.3), size_m=(0.04, 0.8, 0.6)),
+            SceneObject("side", "box", (0.5, 0.4, 0.3), (0.0, 0.0, 0.38, 0.92), size_m=(0.6, 0.04, 0.6)),
+            SceneObject("can", "cylinder", (0.5, -0.1, 0.1), radius_m=0.04, length_m=0.2)]
+
+
+def _clutter() -> list[SceneObject]:
+    return [*_mbm_like_scene(),
+            SceneObject("ball", "sphere", (0.3, 0.3, 0.5), radius_m=0.08),
+            SceneObject("pill", "capsule", (0.2, -0.4, 0.4), (0.3, 0.0, 0.0, 0.95), radius_m=0.05, length_m=0.3)]
+
+
+@pytest.fixture(scope="module")
+def worlds(panda: RobotModel) -> tuple[CollisionWorld, CollisionWorld]:
+    fast, slow = CollisionWorld(panda, padding_m=0.01), CollisionWorld(panda, padding_m=0.01, broad_phase=False)
+    for world in (fast, slow):
+        world.set_objects(_clutter())
+    return fast, slow
+
+
+def _random_states(robot: RobotModel, count: int, seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(robot.lower_limits_rad, robot.upper_limits_rad, size=(count, robot.dof))
+
+
+def test_suspect_whenever_fcl_collides(panda: RobotModel, worlds: tuple[CollisionWorld, CollisionWorld]) -> None:
+    fast, slow = worlds
+    broad = fast._broad_phase  # noqa: SLF001 (the world's own broad phase)
+    qs = _random_states(panda, 1500, seed=10)
+    colliding = np.array([slow.in_collision(q) for q in qs])
+    suspect = np.array([broad.state_suspect(q) for q in qs])
+    assert colliding.any() and (~colliding).any()
+    assert not np.any(colliding & ~suspect)
+    assert (~suspect).any()  # it clears something
+
+
+def test_same_answers_with_and_without_broad_phase(panda: RobotModel,
+                                                   worlds: tuple[CollisionWorld, CollisionWorld]) -> None:
+    fast, slow = worlds
+    qs = _random_states(panda, 2000, seed=11)
+    assert [fast.in_collision(q) for q in qs] == [slow.in_collision(q) for q in qs]
+    rng = np.random.default_rng(12)
+    free = [q for q in qs if not slow.in_collision(q)][:300]
+    edges = []
+    for q in free:
+        step = rng.normal(size=panda.dof)
+        edges.append((q, np.clip(q + 0.6 * step / np.abs(step).max(), panda.lower_limits_rad, panda.upper_limits_rad)))
+    fast_answers = [fast.motion_valid(a, b, 0.02) for a, b in edges]
+    assert fast_answers == [slow.motion_valid(a, b, 0.02) for a, b in edges]
+    assert any(fast_answers) and not all(fast_answers)
+
+
+def test_fcl_asked_only_of_pairs_whose_spheres_touch(panda: RobotModel) -> None:
+    """`collisions` lists the same pairs when FCL is asked only about the pairs the spheres flag,
+    objects and occupied voxels together; the flags come with the links' poses."""
+    fast, slow = CollisionWorld(panda, padding_m=0.01), CollisionWorld(panda, padding_m=0.01, broad_phase=False)
+    slab = np.stack(np.meshgrid(np.arange(-0.6, -0.4, 0.02), np.arange(-0.3, 0.3, 0.02), np.arange(0.0, 0.8, 0.02),
+                                indexing="ij"), axis=-1).reshape(-1, 3)
+    binary = _octree_binary(slab, 0.02)
+    for world in (fast, slow):
+        world.set_objects(_clutter())
+        world.set_octree(binary, 0.02)
+    broad = fast._broad_phase  # noqa: SLF001
+    qs = _random_states(panda, 600, seed=19)
+    kinds = set()
+    for q in qs:
+        expected = slow.collisions(q)
+        assert fast.collisions(q) == expected
+        kinds |= {"self" if b in panda.collision_link_names else b for _, b in expected}
+        objects, voxels, pairs, poses = broad.suspect_pairs(q)
+        np.testing.assert_allclose(poses, panda.link_pose_stack(q), atol=1e-9)
+        assert bool(objects.any() or voxels.any() or pairs.any()) == broad.state_suspect(q)
+    assert {"self", "occupancy"} <= kinds and len(kinds) >= 4
+
+
+def test_edge_visits_states_in_motion_valid_order(panda: RobotModel) -> None:
+    broad = SphereBroadPhase(panda)
+    # A box around the whole robot: every state is suspect, so the order is visible.
+    broad.set_objects([SceneObject("all", "box", (0.0, 0.0, 0.5), size_m=(3.0, 3.0, 3.0))])
+    a, b = panda.home_position_rad, panda.home_position_rad + 0.37
+    suspects, steps = broad.edge_suspects(a, b, 0.01)
+    assert steps == 37
+    assert suspects.tolist() == [37, *_bisection_order(37), 0]
+    first, _ = broad.edge_suspects(a, b, 0.01, first_only=True)
+    assert first.tolist() == [37]
+    broad.clear_objects()
+    assert broad.edge_suspects(a, b, 0.01)[0].size == 0
+    assert not broad.state_suspect(panda.home_position_rad)
+
+
+def test_attached_spheres(panda: RobotModel) -> None:
+    broad = SphereBroadPhase(panda, padding_m=0.0)
+    home = panda.home_position_rad
+    hand = panda.frame_pose(home, "panda_hand")
+    probe_world = hand[:3, 3] + hand[:3, 2] * 0.30  # 30 cm beyond the hand along its z axis
+    broad.set_objects([SceneObject("probe", "sphere", tuple(probe_world), radius_m=0.03)])
+    assert not broad.state_suspect(home)
+    # A 10 cm rod held by the hand (link frame), ending close to the probe.
+    centers = np.array([[0.0, 0.0, 0.1 + 0.04 * i] for i in range(5)])
+    broad.set_attached_spheres("rod", "panda_hand", centers, np.full(5, 0.03),
+                               touch_links=("panda_leftfinger", "panda_rightfinger"))
+    assert broad.state_suspect(home)
+    broad.clear_objects()
+    assert not broad.state_suspect(home)  # own link and touch links are ignored
+    broad.set_attached_spheres("rod", "panda_hand", centers, np.full(5, 0.03))
+    assert broad.state_suspect(home)  # now the fingers count
+    broad.remove_attached("rod")
+    assert not broad.state_suspect(home)
+
+
+def _octree_binary(points: np.ndarray, resolution_m: float) -> bytes:
+    tree = octomap.OcTree(resolution_m)
+    tree.updateNodes(np.asarray(points, dtype=np.float64), True, lazy_eval=True)
+    tree.updateInnerOccupancy()
+    return tree.writeBinary()
+
+
+def test_voxels_conservative_and_world_answers_equal(panda: RobotModel) -> None:
+    rng = np.random.default_rng(13)
+    target = panda.frame_pose(panda.home_position_rad, "panda_grasptarget")[:3, 3]
+    # A slab of voxels in front of the robot and a cube around the grasp target at home.
+    slab = np.stack(np.meshgrid(np.arange(0.45, 0.6, 0.02), np.arange(-0.3, 0.3, 0.02), np.arange(0.0, 0.8, 0.02),
+                                indexing="ij"), axis=-1).reshape(-1, 3)
+    cube = target + rng.uniform(-0.04, 0.04, size=(100, 3))
+    binary = _octree_binary(np.vstack([slab, cube]), 0.02)
+    fast, slow = CollisionWorld(panda, padding_m=0.01), CollisionWorld(panda, padding_m=0.01, broad_phase=False)
+    for world in (fast, slow):
+        world.set_octree(binary, 0.02)
+    assert slow.in_collision(panda.home_position_rad) and fast.in_collision(panda.home_position_rad)
+    qs = _random_states(panda, 300, seed=14)
+    slow_answers = [slow.in_collision(q) for q in qs]
+    assert any(slow_answers) and not all(slow_answers)
+    assert [fast.in_collision(q) for q in qs] == slow_answers
+    broad = fast._broad_phase  # noqa: SLF001
+    assert all(broad.state_suspect(q) for q, hit in zip(qs, slow_answers) if hit)
+    assert all(broad.clearance_pair_bounds_m(q)[0].min() <= slow.clearance_m(q) + 1e-9 for q in qs[:40])
+    fast.clear_octree()
+    assert not fast.in_collision(panda.home_position_rad)
+    assert not broad.state_suspect(panda.home_position_rad)
+
+
+def test_clearance_lower_bound_and_min_clearance(panda: RobotModel,
+                                                  worlds: tuple[CollisionWorld, CollisionWorld]) -> None:
+    """The spheres' bound never exceeds FCL's distance from the bare hulls, and the
+    bound-ordered minimum over states and pairs equals the plain minimum with far fewer FCL
+    queries."""
+    fast, slow = worlds
+    broad = fast._broad_phase  # noqa: SLF001
+    qs = _random_states(panda, 200, seed=15)
+    exact = np.array([slow.clearance_m(q) for q in qs])
+    bounds = np.array([broad.clearance_pair_bounds_m(q)[0].min() for q in qs])
+    assert np.all(bounds <= exact + 1e-9)
+    assert np.any(exact > 0) and np.median(exact - bounds) < 0.05  # a bound, and a useful one
+    queries = {"fast": 0, "slow": 0}
+    for name, world in (("fast", fast), ("slow", slow)):
+        original = world._distance  # noqa: SLF001 (counting FCL distance queries)
+        world._distance = lambda a, b, name=name, original=original: (  # type: ignore[method-assign]
+            queries.__setitem__(name, queries[name] + 1) or original(a, b))
+    try:
+        for chunk in np.array_split(qs, 10):
+            assert fast.min_clearance_m(chunk) == pytest.approx(min(slow.clearance_m(q) for q in chunk), abs=1e-9)
+        for q in qs[:20]:
+            assert fast.clearance_m(q) == pytest.approx(slow.clearance_m(q), abs=1e-9)
+    finally:
+        del fast._distance, slow._distance
+    # Triples in bound order: a handful of FCL queries per chunk of 20 states, not one per near pair.
+    assert queries["fast"] < queries["slow"] / 10
+    path = qs[:3]
+    assert fast.path_clearance_m(path, 0.2) == slow.path_clearance_m(path, 0.2)
+    assert SphereBroadPhase(panda).clearance_pair_bounds_m(panda.home_position_rad)[0].min() == np.inf  # empty world
+
+
+def test_edge_suspects_are_the_suspect_states_of_the_edge(panda: RobotModel,
+                                                          worlds: tuple[CollisionWorld, CollisionWorld]) -> None:
+    """The edge loop takes each state's joint cosines and sines by a rotation per step; its
+    suspects are exactly the states `state_suspect` flags, on edges of up to ~300 steps."""
+    broad = worlds[0]._broad_phase  # noqa: SLF001
+    rng = np.random.default_rng(16)
+    starts = _random_states(panda, 40, seed=17)
+    flagged = 0
+    for a in starts:
+        b = np.clip(a + rng.uniform(-3.0, 3.0, panda.dof), panda.lower_limits_rad, panda.upper_limits_rad)
+        suspects, steps = broad.edge_suspects(a, b, 0.01)
+        expected = {k for k in range(steps + 1) if broad.state_suspect(a + (b - a) * (k / steps))}
+        assert set(suspects.tolist()) == expected and len(suspects) == len(expected)
+        flagged += len(expected)
+    assert flagged > 0

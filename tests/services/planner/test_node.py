@@ -1,0 +1,214 @@
+"""The planner service in process, over real Zenoh sessions on loopback, fed crafted maps.
+
+Covers the error codes that need a particular world state: no map yet, no joint state, a
+stale map, no solution in time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import octomap
+import pytest
+import zenoh
+
+from robonav.pipeline.wire.messages import (ErrorReply, JointState, Occupancy, PlanRequest, PlanResponse, SceneObjectSpec,
+                                       SceneRequest, SceneResponse)
+from robonav.pipeline.planning.ik import pose_error
+from robonav.services.client import RobonavClient
+from robonav.services.common import declare_latched_publisher, open_session
+from robonav.services.config import ZenohConfig, load_config
+from robonav.services.keys import Keys
+from robonav.services.planner.node import PlannerNode
+
+CONFIG = load_config()
+HOME = np.array(CONFIG.robot.home_position_rad)
+GOAL = np.array(CONFIG.demo.goals_rad[0])
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _wall_map(x_m: float, stamp: float) -> Occupancy:
+    """A 2 cm octree of a wall across the workspace at x = x_m, from z 0 to 1 m."""
+    tree = octomap.OcTree(0.02)
+    ys, zs = np.meshgrid(np.arange(-0.8, 0.8, 0.01), np.arange(0.0, 1.0, 0.01))
+    points = np.column_stack([np.full(ys.size, x_m), ys.ravel(), zs.ravel()])
+    tree.insertPointCloud(points, np.array([2.0, 0.0, 0.5]), maxrange=-1.0)
+    occupied, _ = tree.extractPointCloud()
+    return Occupancy(stamp=stamp, resolution_m=0.02, octomap_binary=tree.writeBinary(),
+                     occupied_centers_m=np.asarray(occupied, dtype=np.float32))
+
+
+@pytest.fixture
+def planner(tmp_path: Path) -> Iterator[tuple[PlannerNode, zenoh.Session, RobonavClient]]:
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
+    cfg = dataclasses.replace(CONFIG, planner=dataclasses.replace(CONFIG.planner, occupancy_max_age_s=1.5,
+                                                                   first_map_wait_s=0.3))
+    node_session = open_session(ZenohConfig(connect=(endpoint,)))
+    node = PlannerNode(cfg, node_session)
+    client_session = open_session(ZenohConfig(connect=(endpoint,)))
+    client = RobonavClient(client_session)
+    yield node, client_session, client
+    client.close()
+    node.close()
+    for s in (client_session, node_session, router):
+        s.close()
+
+
+def _publish_until(session: zenoh.Session, key: str, payload: bytes, predicate, timeout_s: float = 5.0) -> None:  # noqa: ANN001
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, f"{key} never arrived"
+        session.put(key, payload)
+        time.sleep(0.05)
+
+
+def test_error_codes_that_depend_on_world_state(planner: tuple[PlannerNode, zenoh.Session, RobonavClient]) -> None:
+    node, session, client = planner
+    keys = client.keys
+
+    reply = client.plan(GOAL)
+    assert isinstance(reply, ErrorReply) and reply.code == "NO_JOINT_STATE"
+
+    state = JointState(stamp=time.time(), names=CONFIG.robot.joint_names, position=HOME, velocity=np.zeros(7))
+    _publish_until(session, keys.joint_states, state.to_wire(), lambda: node._joint_state is not None)
+    reply = client.plan(GOAL)
+    assert isinstance(reply, ErrorReply) and reply.code == "OCCUPANCY_MISSING"
+
+    # A wall far behind the robot: planning works.
+    far_wall = _wall_map(-0.9, time.time())
+    _publish_until(session, keys.occupancy, far_wall.to_wire(), lambda: node._map_received_monotonic is not None)
+    reply = client.plan(GOAL, seed=3)
+    assert isinstance(reply, PlanResponse), reply
+    assert reply.min_clearance_m is not None and reply.min_clearance_m > 0.3
+
+    # A wall through the arm: the start collides with the occupancy map.
+    node._map_received_monotonic = None
+    near_wall = _wall_map(0.3, time.time())
+    _publish_until(session, keys.occupancy, near_wall.to_wire(), lambda: node._map_received_monotonic is not None)
+    reply = client.plan(GOAL)
+    assert isinstance(reply, ErrorReply) and reply.code == "START_IN_COLLISION"
+    assert any(p.endswith("|occupancy") for p in reply.details["pairs"])
+
+    # No map for longer than occupancy_max_age_s: stale.
+    time.sleep(1.6)
+    reply = client.plan(GOAL)
+    assert isinstance(reply, ErrorReply) and reply.code == "OCCUPANCY_STALE"
+    assert reply.details["age_s"] > 1.5
+
+
+def _box_map(center: np.ndarray, size: np.ndarray, stamp: float) -> Occupancy:
+    """A 2 cm octree of a solid box's points."""
+    tree = octomap.OcTree(0.02)
+    axes = [np.arange(c - h, c + h + 1e-9, 0.01) for c, h in zip(center, size / 2)]
+    points = np.stack(np.meshgrid(*axes), axis=-1).reshape(-1, 3)
+    for p in points:
+        tree.updateNode(p, True)
+    occupied, _ = tree.extractPointCloud()
+    return Occupancy(stamp=stamp, resolution_m=0.02, octomap_binary=tree.writeBinary(),
+                     occupied_centers_m=np.asarray(occupied, dtype=np.float32))
+
+
+def test_no_solution_within_the_allowed_time(planner: tuple[PlannerNode, zenoh.Session, RobonavClient]) -> None:
+    node, session, client = planner
+    pillar = next(o for o in CONFIG.sim.objects if o.name == "pillar")
+    occupancy = _box_map(np.array(pillar.position_m), np.array(pillar.size_m), time.time())
+    _publish_until(session, client.keys.occupancy, occupancy.to_wire(), lambda: node._map_received_monotonic is not None)
+    left, right = (np.array(g) for g in CONFIG.demo.goals_rad[:2])
+    # The pillar stands between the two goals: a detour is needed and cannot be found in 0.1 ms.
+    reply = client.plan(right, start_positions=left, allowed_planning_time=1e-4)
+    assert isinstance(reply, ErrorReply) and reply.code == "NO_SOLUTION", reply
+    reply = client.plan(right, start_positions=left, allowed_planning_time=5.0, seed=2)
+    assert isinstance(reply, PlanResponse), reply
+    assert reply.waypoint_count > 2
+
+
+def test_a_request_racing_the_first_map_waits_for_it(planner: tuple[PlannerNode, zenoh.Session, RobonavClient]) -> None:
+    node, session, client = planner
+    node.cfg = dataclasses.replace(node.cfg, planner=dataclasses.replace(node.cfg.planner, first_map_wait_s=10.0))
+    replies: list = []
+    asking = threading.Thread(target=lambda: replies.append(client.plan(GOAL, start_positions=HOME, seed=1)))
+    asking.start()
+    time.sleep(0.5)
+    assert not replies, "the planner answered before any map existed"
+    session.put(client.keys.occupancy, _wall_map(-0.9, time.time()).to_wire())
+    asking.join(timeout=20.0)
+    assert replies and isinstance(replies[0], PlanResponse), replies
+
+
+def test_a_late_planner_gets_the_last_published_map(tmp_path: Path) -> None:
+    """Perception publishes the map latched: a planner started after it still gets the last one."""
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    sessions = [open_session(ZenohConfig(mode="router", listen=(endpoint,)))]
+    try:
+        sessions.append(open_session(ZenohConfig(connect=(endpoint,))))
+        publisher = declare_latched_publisher(sessions[-1], Keys(CONFIG.cell).occupancy)
+        publisher.put(_wall_map(-0.9, time.time()).to_wire())
+        time.sleep(0.3)
+        sessions.append(open_session(ZenohConfig(connect=(endpoint,))))
+        node = PlannerNode(CONFIG, sessions[-1])
+        deadline = time.monotonic() + 10.0
+        while node._map_received_monotonic is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert node._map_received_monotonic is not None, "the latched map never reached the late planner"
+        node.close()
+        publisher.undeclare()
+    finally:
+        for s in reversed(sessions):
+            s.close()
+
+
+def test_goal_forms_and_the_planning_scene_over_zenoh(planner: tuple[PlannerNode, zenoh.Session, RobonavClient]) -> None:
+    node, session, client = planner
+    _publish_until(session, client.keys.occupancy, _wall_map(-0.9, time.time()).to_wire(),
+                   lambda: node._map_received_monotonic is not None)
+
+    # A Cartesian goal: the hand where it is at GOAL, reached within the default 1 mm / 0.01 rad.
+    target = node.robot.frame_pose(GOAL, "panda_hand")
+    quat_xyzw = _quat_xyzw(target[:3, :3])
+    reply = client.plan_to_pose(target[:3, 3], quat_xyzw, start_positions=HOME, seed=1)
+    assert isinstance(reply, PlanResponse), reply
+    position_error_m, angle_error_rad = pose_error(node.robot, reply.path[-1], target, "panda_hand")
+    assert position_error_m <= 1e-3 and angle_error_rad <= 0.01
+    np.testing.assert_array_equal(reply.goal_positions, reply.path[-1])
+
+    reply = client.plan_to_pose([3.0, 0.0, 0.5], start_positions=HOME)
+    assert isinstance(reply, ErrorReply) and reply.code == "GOAL_UNREACHABLE", reply
+    reply = client.plan_to_pose([0.4, 0.0, 0.5], goal_link="no_such_link", start_positions=HOME)
+    assert isinstance(reply, ErrorReply) and reply.code == "INVALID_REQUEST" and "no_such_link" in reply.message
+
+    # A goal set: the reply names the goal it reached.
+    reply = client.plan_request(PlanRequest(goal_set=np.array([GOAL, HOME + 0.1]), start_positions=HOME, seed=2))
+    assert isinstance(reply, PlanResponse), reply
+    np.testing.assert_array_equal(reply.path[-1], [GOAL, HOME + 0.1][reply.goal_index])
+
+    # A box added through planner/scene is planned around, and a start inside it is refused.
+    hand = node.robot.frame_pose(HOME, "panda_hand")[:3, 3]
+    scene = client.scene(SceneRequest(operation="add", objects=(
+        SceneObjectSpec("crate", "box", tuple(hand), (0.0, 0.0, 0.0, 1.0), size_m=(0.1, 0.1, 0.1)),)))
+    assert isinstance(scene, SceneResponse) and [o.name for o in scene.objects] == ["crate"]
+    reply = client.plan(GOAL, start_positions=HOME)
+    assert isinstance(reply, ErrorReply) and reply.code == "START_IN_COLLISION"
+    assert any("crate" in pair for pair in reply.details["pairs"]), reply.details
+    scene = client.scene(SceneRequest(operation="remove", names=("crate",)))
+    assert isinstance(scene, SceneResponse) and scene.objects == ()
+    assert isinstance(client.plan(GOAL, start_positions=HOME, seed=3), PlanResponse)
+
+
+def _quat_xyzw(rotation: np.ndarray) -> np.ndarray:
+    import pinocchio as pin
+
+    q = pin.Quaternion(rotation)
+    return np.array([q.x, q.y, q.z, q.w])

@@ -1,0 +1,205 @@
+"""TLS, mutual TLS, user/password and access control with the example configs in configs/security.
+
+Real Zenoh over loopback: `robonav router` processes with the committed router configs, a real
+executor process logged in as `executor`, and in-process client sessions with the committed
+client configs, all run in a directory where `gen_certs.sh` wrote fresh certificates.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from robonav.pipeline.wire.messages import ErrorReply, ExecutorStatus, StopResponse
+from robonav.pipeline.wire.codec import ErrorCode
+from robonav.services.client import QueryFailed, RobonavClient
+from robonav.services.common import to_zenoh_config
+from robonav.services.config import ZenohConfig, load_config
+
+from ..conftest import free_port, write_config
+from ...conftest import REPO_ROOT
+
+SECURITY_DIR = REPO_ROOT / "configs" / "security"
+START_TIMEOUT_S = 30.0
+REQUEST_LIMIT_BYTES = 64 * 1024
+
+pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="gen_certs.sh needs the openssl command")
+
+
+@pytest.fixture(scope="module")
+def cell_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The example configs and credentials beside freshly generated certificates (their relative paths)."""
+    directory = tmp_path_factory.mktemp("security")
+    for path in SECURITY_DIR.iterdir():
+        if path.suffix in (".json5", ".txt"):
+            shutil.copy(path, directory / path.name)
+    subprocess.run(["bash", str(SECURITY_DIR / "gen_certs.sh"), "certs"], cwd=directory, check=True,
+                   capture_output=True)
+    return directory
+
+
+def wait_for_port(port: int, proc: subprocess.Popen[bytes]) -> None:
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, f"router exited with {proc.returncode}"
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.05)
+    raise TimeoutError(f"nothing listens on port {port}")
+
+
+@contextlib.contextmanager
+def running(cmd: list[str], cwd: Path) -> Iterator[subprocess.Popen[bytes]]:
+    proc = subprocess.Popen([sys.executable, "-m", "robonav.services.cli", *cmd, "--log-level", "WARNING"], cwd=cwd)
+    try:
+        yield proc
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+@contextlib.contextmanager
+def router(cell_dir: Path, zenoh_config: str) -> Iterator[int]:
+    """`robonav router` with one of the example router configs, listening on a free TLS port."""
+    port = free_port()
+    config = write_config(cell_dir, f"router-{port}.yaml", zenoh={"connect": [f"tls/localhost:{port}"]})
+    with running(["router", "--config", str(config), "--zenoh-config", zenoh_config,
+                  "--listen", f"tls/127.0.0.1:{port}"], cell_dir) as proc:
+        wait_for_port(port, proc)
+        yield port
+
+
+def session(cell_dir: Path, endpoint: str, zenoh_config: str | None, *, connect_timeout_ms: int = 5000) -> zenoh.Session:
+    cfg = ZenohConfig(connect=(endpoint,), config_file=zenoh_config)
+    with contextlib.chdir(cell_dir):  # the example configs name certificates relative to their directory
+        zcfg = to_zenoh_config(cfg)
+        zcfg.insert_json5("connect/timeout_ms", str(connect_timeout_ms))
+        return zenoh.open(zcfg)
+
+
+def refused(cell_dir: Path, endpoint: str, zenoh_config: str | None) -> None:
+    """Opening a session fails (Zenoh retries a refused handshake until its connect timeout)."""
+    with pytest.raises(zenoh.ZError):
+        session(cell_dir, endpoint, zenoh_config, connect_timeout_ms=1000)
+
+
+def round_trip(server: zenoh.Session, client: zenoh.Session) -> list[bytes]:
+    queryable = server.declare_queryable("robonav/test/echo", lambda q: q.reply(q.key_expr, q.payload.to_bytes()))
+    try:
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:  # the declaration reaches the router asynchronously
+            replies = [r.ok.payload.to_bytes() for r in client.get("robonav/test/echo", payload=b"ping", timeout=1.0)
+                       if r.ok is not None]
+            if replies:
+                return replies
+            time.sleep(0.05)
+        return []
+    finally:
+        queryable.undeclare()
+
+
+def test_tls_session_works_and_plain_tcp_is_refused(cell_dir: Path) -> None:
+    with router(cell_dir, "router-tls.json5") as port:
+        endpoint = f"tls/localhost:{port}"
+        with session(cell_dir, endpoint, "client-tls.json5") as a, session(cell_dir, endpoint, "client-tls.json5") as b:
+            assert round_trip(a, b) == [b"ping"]
+        refused(cell_dir, f"tcp/127.0.0.1:{port}", None)
+        refused(cell_dir, endpoint, None)  # TLS without trusting the cell CA: the router's certificate is refused
+
+
+def test_mutual_tls_needs_a_client_certificate(cell_dir: Path) -> None:
+    with router(cell_dir, "router-mtls.json5") as port:
+        endpoint = f"tls/localhost:{port}"
+        refused(cell_dir, endpoint, "client-tls.json5")
+        with session(cell_dir, endpoint, "client-mtls.json5") as a, session(cell_dir, endpoint, "client-mtls.json5") as b:
+            assert round_trip(a, b) == [b"ping"]
+
+
+def test_a_wrong_password_is_refused(cell_dir: Path) -> None:
+    text = (cell_dir / "client-viewer.json5").read_text(encoding="utf-8")
+    assert "example-viewer-password" in text
+    (cell_dir / "client-intruder.json5").write_text(text.replace("example-viewer-password", "guessed"), encoding="utf-8")
+    with router(cell_dir, "router-acl.json5") as port:
+        refused(cell_dir, f"tls/localhost:{port}", "client-intruder.json5")
+        refused(cell_dir, f"tls/localhost:{port}", "client-tls.json5")  # TLS but no credentials
+        session(cell_dir, f"tls/localhost:{port}", "client-viewer.json5").close()
+
+
+@pytest.fixture(scope="module")
+def acl_cell(cell_dir: Path) -> Iterator[str]:
+    """The access-controlled router and a real executor logged in as `executor`; yields the endpoint."""
+    with router(cell_dir, "router-acl.json5") as port:
+        endpoint = f"tls/localhost:{port}"
+        config = write_config(cell_dir, "executor.yaml", zenoh={"connect": [endpoint]},
+                              limits={"max_request_bytes": REQUEST_LIMIT_BYTES})
+        assert load_config(config).limits.max_request_bytes == REQUEST_LIMIT_BYTES
+        with running(["serve", "executor", "--config", str(config), "--zenoh-config", "client-executor.json5"], cell_dir):
+            yield endpoint
+
+
+@pytest.fixture
+def operator(cell_dir: Path, acl_cell: str) -> Iterator[RobonavClient]:
+    with session(cell_dir, acl_cell, "client-operator.json5") as s:
+        client = RobonavClient(s)
+        assert not client.wait_for_services(["executor"], START_TIMEOUT_S), "executor not alive"
+        yield client
+        client.close()
+
+
+def test_only_the_executor_client_may_command_the_executor(cell_dir: Path, acl_cell: str,
+                                                          operator: RobonavClient) -> None:
+    assert isinstance(operator.stop(timeout_s=5.0), StopResponse)
+    path = np.zeros((2, 7))
+    answer = operator.execute(path, timeout_s=5.0)  # reaches the executor, which has no joint state to start from
+    assert isinstance(answer, ErrorReply) and answer.code == ErrorCode.NO_JOINT_STATE.value
+
+    with session(cell_dir, acl_cell, "client-viewer.json5") as s:
+        viewer = RobonavClient(s)
+        try:
+            # The viewer may watch the executor: its status stream gets through.
+            assert viewer.wait_for(lambda: isinstance(viewer.status, ExecutorStatus), 5.0)
+            assert "executor" in viewer.alive_services()
+            # But what it sends to executor/* is dropped by the router, and the call says so.
+            with pytest.raises(QueryFailed, match="access control denied"):
+                viewer.execute(path, timeout_s=2.0)
+            with pytest.raises(QueryFailed, match="no reply on robonav/arm0/executor/stop"):
+                viewer.stop(timeout_s=2.0)
+        finally:
+            viewer.close()
+
+
+def test_an_oversized_request_is_refused_with_a_structured_error(operator: RobonavClient) -> None:
+    path = np.zeros((2000, 7))  # 112 000 bytes of waypoints, over the configured 64 KiB
+    answer = operator.execute(path, timeout_s=5.0)
+    assert isinstance(answer, ErrorReply), answer
+    assert answer.code == ErrorCode.PAYLOAD_TOO_LARGE.value
+    assert answer.details["limit_bytes"] == REQUEST_LIMIT_BYTES
+    assert answer.details["size_bytes"] > REQUEST_LIMIT_BYTES
+    # The executor keeps serving: a small request right after is decoded and answered as usual.
+    small = operator.execute(np.zeros((2, 7)), timeout_s=5.0)
+    assert isinstance(small, ErrorReply) and small.code == ErrorCode.NO_JOINT_STATE.value
+
+
+def test_an_unusable_zenoh_config_is_a_config_error(cell_dir: Path) -> None:
+    (cell_dir / "broken.json5").write_text("{ transport: { link: { tls: 7 } } }", encoding="utf-8")
+    for name in ("missing.json5", "broken.json5"):
+        done = subprocess.run([sys.executable, "-m", "robonav.services.cli", "router", "--zenoh-config", name,
+                               "--listen", f"tcp/127.0.0.1:{free_port()}"], cwd=cell_dir, capture_output=True,
+                              text=True, timeout=60)
+        assert done.returncode == 2, done.stderr
+        assert f"{name}: key '<file>': not a usable Zenoh config" in done.stderr
