@@ -15,8 +15,8 @@ import numpy as np
 import numpy.typing as npt
 
 from robonav.pipeline.config import require
+from robonav.pipeline.types import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -19,16 +19,17 @@ import cv2
 import numpy as np
 
 from robonav.calibration.board import BoardSpec
-from robonav.calibration.dataset import Dataset, PoseSpec, load_dataset
-from robonav.calibration.extrinsics import CameraExtrinsics, default_path, write_extrinsics
+from robonav.calibration.dataset import Dataset, load_dataset
 from robonav.calibration.hand_eye import CalibrationError
 from robonav.calibration.report import format_table, report_dict
 from robonav.calibration.sim_collect import CollectOptions, collect
 from robonav.calibration.solve import detect_all, solve
+from robonav.pipeline.camera import CameraExtrinsics
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.transforms import FloatArray
-from robonav.services.config import load_config
+from robonav.pipeline.transforms import PoseSpec
+from robonav.pipeline.types import FloatArray
+from robonav.services.config import default_extrinsics_path, load_config, write_extrinsics
 
 log = logging.getLogger("robonav.calibrate")
 
@@ -107,7 +108,7 @@ def run_solve(args: argparse.Namespace) -> int:
     print(format_table(report), flush=True)
     if not args.no_write:
         pose = PoseSpec.from_matrix(solution.x)
-        path = write_extrinsics(args.extrinsics_out or default_path(dataset.camera_id), CameraExtrinsics(
+        path = write_extrinsics(args.extrinsics_out or default_extrinsics_path(dataset.camera_id), CameraExtrinsics(
             camera_id=dataset.camera_id,
             parent_frame="world" if dataset.setup == "eye_to_hand" else dataset.end_effector_link,
             position_m=pose.position_m, quat_xyzw=pose.quat_xyzw, method=f"refined from {solution.seed_method}",

@@ -29,7 +29,6 @@ for none. The world frame is the robot base frame.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -39,33 +38,12 @@ import yaml
 
 from robonav.calibration.board import BoardSpec
 from robonav.pipeline.config import ConfigError, from_mapping, require
-from robonav.pipeline.transforms import FloatArray, make_transform, quat_xyzw_from_rotation
+from robonav.pipeline.transforms import PoseSpec
+from robonav.pipeline.types import FloatArray
 
 DATASET_FORMAT = "robonav-handeye/1"
 DATASET_FILE = "dataset.yaml"
 Setup = Literal["eye_to_hand", "eye_in_hand"]
-
-
-@dataclass(frozen=True)
-class PoseSpec:
-    """A rigid transform as written in files: translation [m] and scalar-last unit quaternion."""
-
-    position_m: tuple[float, float, float]
-    quat_xyzw: tuple[float, float, float, float]
-
-    def __post_init__(self) -> None:
-        norm = math.sqrt(sum(v * v for v in self.quat_xyzw))
-        require(abs(norm - 1.0) < 1e-3, f"quat_xyzw must be a unit quaternion, got {list(self.quat_xyzw)} (norm {norm})")
-
-    @property
-    def matrix(self) -> FloatArray:
-        return make_transform(self.position_m, self.quat_xyzw)
-
-    @classmethod
-    def from_matrix(cls, transform: FloatArray) -> PoseSpec:
-        t = np.asarray(transform, dtype=np.float64)
-        q = quat_xyzw_from_rotation(t[:3, :3])
-        return cls(tuple(float(v) for v in t[:3, 3]), tuple(float(v) for v in q))  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)

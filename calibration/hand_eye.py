@@ -25,7 +25,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
+
 
 HAND_EYE_METHODS: dict[str, int] = {
     "tsai": cv2.CALIB_HAND_EYE_TSAI,

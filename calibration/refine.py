@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from robonav.calibration.board import Detection
 from robonav.calibration.dataset import IntrinsicsSpec
 from robonav.calibration.hand_eye import invert
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 
 HUBER_SCALE_PX = 1.0
 """Residuals beyond this count linearly, not quadratically [px]."""

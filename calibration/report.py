@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from robonav.calibration.dataset import PoseSpec
+from robonav.pipeline.transforms import PoseSpec
 from robonav.calibration.hand_eye import transform_error
 from robonav.calibration.solve import MethodResult, Solution
 

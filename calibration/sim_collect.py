@@ -39,7 +39,7 @@ from robonav.pipeline.config import require
 from robonav.pipeline.planning.ik import solve_ik
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.robot.config import RobotConfig
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 
 MIN_VISIBLE_FRACTION = 0.75
 """A render counts as a view when at least this share of the board's corners is detected."""

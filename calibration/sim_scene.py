@@ -29,7 +29,8 @@ from robonav.calibration.dataset import IntrinsicsSpec
 from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.robot.model import resolve_urdf_path
 from robonav.pipeline.robot.config import RobotConfig
-from robonav.pipeline.transforms import FloatArray, quat_xyzw_from_rotation
+from robonav.pipeline.transforms import quat_xyzw_from_rotation
+from robonav.pipeline.types import FloatArray
 
 TINY_RENDERER_PIXEL_OFFSET = (0.5, -0.5)
 """Effective minus stated principal point of TinyRenderer renders [px of the render]."""

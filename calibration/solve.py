@@ -32,7 +32,7 @@ from robonav.calibration.hand_eye import (
     transform_error,
 )
 from robonav.calibration.refine import RefineResult, refine, reprojection_residuals
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 
 MIN_CORNERS = 6
 """Fewest corners for a view to count: PnP on a plane needs 4, and a few more make it stable."""

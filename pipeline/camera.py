@@ -11,7 +11,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 from robonav.pipeline.config import require
-from robonav.pipeline.transforms import FloatArray, make_transform
+from robonav.pipeline.transforms import PoseSpec, make_transform
+from robonav.pipeline.types import FloatArray
 
 
 @dataclass(frozen=True)
@@ -66,3 +67,27 @@ class CameraConfig:
         """Square-pixel pinhole intrinsics from the vertical field of view."""
         fy = 0.5 * self.height / math.tan(math.radians(self.vertical_fov_deg) / 2.0)
         return CameraIntrinsics(self.width, self.height, fy, fy, (self.width - 1) / 2.0, (self.height - 1) / 2.0)
+
+
+@dataclass(frozen=True)
+class CameraExtrinsics:
+    """A calibrated camera pose, as `robonav calibrate solve` writes it (`services/config.py` reads and
+    writes the file). The optical frame is OpenCV's, as in `CameraConfig`."""
+
+    camera_id: str
+    parent_frame: str
+    """"world" for a fixed camera (world_from_camera), else the link it is mounted on (link_from_camera)."""
+    position_m: tuple[float, float, float]
+    quat_xyzw: tuple[float, float, float, float]
+    method: str = ""
+    reprojection_rms_px: float | None = None
+    calibrated_at: str = ""
+
+    def __post_init__(self) -> None:
+        require(bool(self.camera_id), "camera_id must not be empty")
+        require(bool(self.parent_frame), "parent_frame must not be empty")
+        PoseSpec(self.position_m, self.quat_xyzw)  # validates the quaternion
+
+    @property
+    def parent_from_camera(self) -> FloatArray:
+        return PoseSpec(self.position_m, self.quat_xyzw).matrix

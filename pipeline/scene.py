@@ -10,7 +10,8 @@ import numpy as np
 import numpy.typing as npt
 
 from robonav.pipeline.config import require
-from robonav.pipeline.transforms import FloatArray, make_transform, quat_xyzw_from_rotation
+from robonav.pipeline.transforms import make_transform, quat_xyzw_from_rotation
+from robonav.pipeline.types import FloatArray
 
 
 ObjectType = Literal["box", "cylinder", "sphere", "capsule", "mesh"]

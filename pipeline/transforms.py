@@ -5,12 +5,15 @@ Quaternions are scalar-last (`quat_xyzw`), the order used by pybullet, ROS and t
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
+from robonav.pipeline.config import require
+from robonav.pipeline.types import FloatArray
+
 
 
 def rotation_from_quat_xyzw(quat_xyzw: Sequence[float] | FloatArray) -> FloatArray:
@@ -77,3 +80,25 @@ def look_at_quat_xyzw(eye: Sequence[float], target: Sequence[float], up: Sequenc
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return quat_xyzw_from_rotation(np.column_stack([x, y, z]))
+
+
+@dataclass(frozen=True)
+class PoseSpec:
+    """A rigid transform as written in files: translation [m] and scalar-last unit quaternion."""
+
+    position_m: tuple[float, float, float]
+    quat_xyzw: tuple[float, float, float, float]
+
+    def __post_init__(self) -> None:
+        norm = math.sqrt(sum(v * v for v in self.quat_xyzw))
+        require(abs(norm - 1.0) < 1e-3, f"quat_xyzw must be a unit quaternion, got {list(self.quat_xyzw)} (norm {norm})")
+
+    @property
+    def matrix(self) -> FloatArray:
+        return make_transform(self.position_m, self.quat_xyzw)
+
+    @classmethod
+    def from_matrix(cls, transform: FloatArray) -> PoseSpec:
+        t = np.asarray(transform, dtype=np.float64)
+        q = quat_xyzw_from_rotation(t[:3, :3])
+        return cls(tuple(float(v) for v in t[:3, 3]), tuple(float(v) for v in q))  # type: ignore[arg-type]

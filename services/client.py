@@ -17,6 +17,7 @@ from robonav.pipeline.wire.messages import (ContactsRequest, ContactsResponse, E
                                        ExecutorStatus, JointState, Occupancy, PlanRequest, PlanResponse, SceneRequest,
                                        SceneResponse, StopRequest, StopResponse, decode_reply)
 from robonav.pipeline.wire.codec import Message, ProtocolError
+from robonav.pipeline.wire.codes import ExecutionState
 from robonav.services.common import declare_latched_subscriber
 from robonav.services.keys import Keys
 
@@ -52,6 +53,11 @@ def query_one(session: zenoh.Session, key: str, request: Message, expected: type
         sample = reply.ok if reply.ok is not None else reply.err
         return decode_reply(sample.payload.to_bytes(), expected), _replier(reply)  # type: ignore[return-value]
     raise _no_reply(key, timeout_s, started)
+
+
+def trajectory_outcome(status: ExecutorStatus) -> str:
+    """A finished trajectory's outcome: its last_result when idle ('succeeded'), else the state ('stopped', 'error')."""
+    return (status.last_result if status.state is ExecutionState.IDLE else status.state).value
 
 
 class RobonavClient:
@@ -172,17 +178,17 @@ class RobonavClient:
     def contacts(self, *, reset: bool = False, timeout_s: float = 5.0) -> ContactsResponse | ErrorReply:
         return self.query(self.keys.contacts, ContactsRequest(reset=reset), ContactsResponse, timeout_s)
 
+    def trajectory_finished(self, trajectory_id: str) -> bool:
+        """Whether the latest status reports `trajectory_id` done, stopped or failed."""
+        s = self.status
+        return s is not None and s.trajectory_id == trajectory_id and s.state.finished
+
     def wait_for_trajectory(self, trajectory_id: str, timeout_s: float) -> str:
-        """Wait until the executor reports `trajectory_id` finished; returns its last_result ('timeout' if not)."""
-
-        def finished() -> bool:
-            s = self.status
-            return s is not None and s.trajectory_id == trajectory_id and s.state in ("idle", "stopped", "error")
-
-        if not self.wait_for(finished, timeout_s):
+        """Wait until the executor reports `trajectory_id` finished; returns `trajectory_outcome` ('timeout' if not)."""
+        if not self.wait_for(lambda: self.trajectory_finished(trajectory_id), timeout_s):
             return "timeout"
         assert self.status is not None
-        return self.status.last_result if self.status.state == "idle" else self.status.state
+        return trajectory_outcome(self.status)
 
     def close(self) -> None:
         for sub in self._subs:

@@ -19,7 +19,8 @@ import zenoh.ext
 
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.wire.messages import ErrorReply
-from robonav.pipeline.wire.codec import SCHEMA_VERSION, ErrorCode, Message, ProtocolError
+from robonav.pipeline.wire.codec import SCHEMA_VERSION, Message, ProtocolError
+from robonav.pipeline.wire.codes import ErrorCode
 from robonav.services.config import LimitsConfig, RobonavConfig, ZenohConfig, load_config
 from robonav.services.keys import Keys
 

@@ -3,23 +3,25 @@
 from __future__ import annotations
 
 import dataclasses
-import os
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import yaml
 
-from robonav.pipeline.camera import CameraConfig
+from robonav.pipeline.camera import CameraConfig, CameraExtrinsics
 from robonav.pipeline.config import ConfigError, from_mapping, require
 from robonav.pipeline.perception.config import PerceptionConfig
 from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.sim.config import SimConfig
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.trajectory.config import ExecutorConfig
+from robonav.pipeline.types import FloatArray
 
 DEFAULT_CONFIG_NAME = "default.yaml"
+DEFAULT_EXTRINSICS_DIRECTORY = Path("configs") / "calibration"
+"""Where `robonav calibrate solve` writes `<camera_id>.yaml` unless told otherwise."""
 
 
 @dataclass(frozen=True)
@@ -43,82 +45,6 @@ class LimitsConfig:
 
     def __post_init__(self) -> None:
         require(self.max_request_bytes > 0, f"limits.max_request_bytes must be > 0, got {self.max_request_bytes}")
-
-
-@dataclass(frozen=True)
-class ExecutorConfig:
-    rate_hz: float = 1000.0
-    """Setpoint stream rate [Hz]."""
-    status_rate_hz: float = 20.0
-    velocity_scaling: float = 0.5
-    """Default max_velocity_scaling_factor when a request gives none."""
-    acceleration_scaling: float = 0.5
-    """Default max_acceleration_scaling_factor when a request gives none."""
-    start_tolerance_rad: float = 0.05
-    """An execute path must start within this of the measured joint state [rad]."""
-    preempt_tolerance_rad: float = 0.2
-    """While moving, an execute path must start within this of the commanded state [rad]."""
-    max_path_deviation_rad: float = 0.02
-    """Blended corners stay within this of the path's polyline and waypoints [rad]; 0 = rest at every waypoint."""
-    joint_state_timeout_s: float = 0.5
-    """Watchdog: no joint state for longer than this while moving stops the arm (state error) [s]."""
-    max_tracking_error_rad: float = 0.2
-    """Watchdog: a joint further than this from every setpoint of the last `tracking_latency_s`
-    while moving stops the arm [rad]."""
-    tracking_latency_s: float = 0.3
-    """Watchdog: how far back setpoints count for the tracking error (the loop's latency) [s]."""
-    busy_wait_s: float = 0.0
-    """The streaming loop polls the clock for this long before each tick instead of sleeping [s]."""
-    realtime_priority: int = 50
-    """SCHED_FIFO priority (1-99) of the setpoint stream's loop; 0 leaves it at normal priority.
-    Needs CAP_SYS_NICE or an RLIMIT_RTPRIO that allows it (`ulimit -r`, compose `ulimits:
-    rtprio`); without either the stream logs a warning and runs at normal priority."""
-    cpu_affinity: tuple[int, ...] = ()
-    """CPUs the setpoint stream's loop may run on (ros2_control's `cpu_affinity`); empty: any.
-    Its Zenoh threads stay free to run elsewhere."""
-    command_lead_s: float = 0.01
-    """A new trajectory (execute, stop, replan) takes over this long after the command: the time
-    to sample it and hand it to the setpoint stream's process, so the switch is exact [s]."""
-    monitor_path: bool = True
-    """Re-check the rest of an executing path against every new occupancy map; a new obstacle on
-    it stops the arm (and replans when the request asks for it)."""
-    path_check_rate_hz: float = 10.0
-    """The rest of the path is re-checked at least this often (and on every new map) [Hz]."""
-    replan_attempts: int = 3
-    """Default plans per execute request after blocks (ExecuteRequest.replan_attempts)."""
-    replan_timeout_s: float = 10.0
-    """Wait for a planner's reply to a replan at most this long [s]."""
-    replan_delay_s: float = 0.5
-    """Pause after a failed replan before the next, so the map can change (MoveIt's replan_delay) [s]."""
-    replan_settle_s: float = 1.0
-    """Before a replan, wait up to this long for two maps taken after the stop, the second adding
-    (almost) no voxel to the first: the obstacle that stopped the arm may still be moving, and a
-    path around where it was runs into where it stops [s]; 0: plan at once."""
-
-    def __post_init__(self) -> None:
-        require(0 < self.rate_hz <= 2000, f"executor.rate_hz must be in (0, 2000], got {self.rate_hz}")
-        require(self.status_rate_hz > 0, f"executor.status_rate_hz must be > 0, got {self.status_rate_hz}")
-        for key in ("velocity_scaling", "acceleration_scaling"):
-            value = getattr(self, key)
-            require(0 < value <= 1, f"executor.{key} must be in (0, 1], got {value}")
-        require(self.start_tolerance_rad > 0, f"executor.start_tolerance_rad must be > 0, got {self.start_tolerance_rad}")
-        for key in ("preempt_tolerance_rad", "joint_state_timeout_s", "max_tracking_error_rad", "tracking_latency_s"):
-            value = getattr(self, key)
-            require(value > 0, f"executor.{key} must be > 0, got {value}")
-        require(0 <= self.busy_wait_s < 1.0 / self.rate_hz,
-                f"executor.busy_wait_s must be in [0, 1 / rate_hz), got {self.busy_wait_s}")
-        require(self.max_path_deviation_rad >= 0,
-                f"executor.max_path_deviation_rad must be >= 0, got {self.max_path_deviation_rad}")
-        require(0 <= self.realtime_priority <= 99, f"executor.realtime_priority must be in [0, 99], got {self.realtime_priority}")
-        cpus = os.cpu_count() or 1
-        require(all(isinstance(c, int) and 0 <= c < cpus for c in self.cpu_affinity),
-                f"executor.cpu_affinity must list CPUs in [0, {cpus - 1}], got {list(self.cpu_affinity)}")
-        require(0 < self.command_lead_s <= 0.5, f"executor.command_lead_s must be in (0, 0.5], got {self.command_lead_s}")
-        require(self.path_check_rate_hz > 0, f"executor.path_check_rate_hz must be > 0, got {self.path_check_rate_hz}")
-        require(self.replan_attempts >= 1, f"executor.replan_attempts must be >= 1, got {self.replan_attempts}")
-        require(self.replan_timeout_s > 0, f"executor.replan_timeout_s must be > 0, got {self.replan_timeout_s}")
-        require(self.replan_delay_s >= 0, f"executor.replan_delay_s must be >= 0, got {self.replan_delay_s}")
-        require(self.replan_settle_s >= 0, f"executor.replan_settle_s must be >= 0, got {self.replan_settle_s}")
 
 
 @dataclass(frozen=True)
@@ -186,8 +112,6 @@ def load_config(path: str | Path | None = None) -> RobonavConfig:
 
 def _with_extrinsics(cfg: RobonavConfig, file: Path) -> RobonavConfig:
     """Resolve and check every camera's `extrinsics_file` now, so a bad one fails at load."""
-    from robonav.calibration.extrinsics import read_extrinsics  # calibration's CLI imports this module
-
     cameras = []
     for i, camera in enumerate(cfg.cameras):
         if camera.extrinsics_file is None:
@@ -213,6 +137,53 @@ def perceived_world_from_camera(camera: CameraConfig) -> FloatArray:
     extrinsics file (resolved by `load_config`), else its configured pose."""
     if camera.extrinsics_file is None:
         return camera.world_from_camera
-    from robonav.calibration.extrinsics import read_extrinsics
-
     return read_extrinsics(camera.extrinsics_file).parent_from_camera
+
+
+def default_extrinsics_path(camera_id: str) -> Path:
+    return DEFAULT_EXTRINSICS_DIRECTORY / f"{camera_id}.yaml"
+
+
+def write_extrinsics(path: str | Path, extrinsics: CameraExtrinsics) -> Path:
+    """Write a camera extrinsics file (see `read_extrinsics` for the layout)."""
+    file = Path(path)
+    file.parent.mkdir(parents=True, exist_ok=True)
+    data: dict[str, Any] = {
+        "camera_id": extrinsics.camera_id, "parent_frame": extrinsics.parent_frame,
+        "position_m": [float(v) for v in extrinsics.position_m], "quat_xyzw": [float(v) for v in extrinsics.quat_xyzw],
+        "method": extrinsics.method, "calibrated_at": extrinsics.calibrated_at,
+    }
+    if extrinsics.reprojection_rms_px is not None:
+        data["reprojection_rms_px"] = float(extrinsics.reprojection_rms_px)
+    file.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    return file
+
+
+def read_extrinsics(path: str | Path) -> CameraExtrinsics:
+    """Read a camera extrinsics file strictly (unknown keys and wrong types raise ConfigError).
+
+    The file hand-eye calibration writes and perception reads, `configs/calibration/<camera_id>.yaml`:
+
+    ```yaml
+    camera_id: cam0
+    parent_frame: world          # eye-to-hand: the robot base (world) frame; eye-in-hand: the
+                                 # end-effector link the camera rides on, e.g. panda_hand
+    position_m: [1.45, 0.55, 1.05]            # camera optical frame origin in parent_frame [m]
+    quat_xyzw: [-0.444, -0.751, 0.420, 0.249] # optical frame orientation in parent_frame
+    # informative, ignored when read:
+    method: refined
+    reprojection_rms_px: 0.08
+    ```
+
+    The optical frame is OpenCV's (z forward, x right, y down), the same as the `cameras[]`
+    entries of the robonav config, so for a fixed camera `position_m`/`quat_xyzw` are exactly
+    what `cameras[].position_m`/`cameras[].quat_xyzw` hold: world_from_camera.
+    """
+    file = Path(path)
+    try:
+        data = yaml.safe_load(file.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(str(file), "<file>", f"cannot read: {exc.strerror or exc}") from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(str(file), "<file>", f"invalid YAML: {exc}") from exc
+    return from_mapping(CameraExtrinsics, data, source=str(file))

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import weakref
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -25,10 +25,10 @@ import numpy as np
 import numpy.typing as npt
 
 from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
-from robonav.pipeline.robot.link_geometry import IntArray, grow_hull
+from robonav.pipeline.robot.link_geometry import grow_hull
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray, IntArray, StateValidFn
 
 OCCUPANCY = "occupancy"
 """Name reported for contacts with the occupancy octree."""
@@ -527,7 +527,7 @@ class CollisionWorld:
             _self_overflag[self._robot] = cached
         return cached
 
-    def state_free_by_spheres(self, q: FloatArray, exact: Callable[[FloatArray], bool]) -> bool:
+    def state_free_by_spheres(self, q: FloatArray, exact: StateValidFn) -> bool:
         """Conservative validity of `q`: free when its spheres touch nothing; when they do, FCL
         decides only if `exact(q)`, else the state counts as in collision.
 
@@ -541,7 +541,7 @@ class CollisionWorld:
         return bool(exact(q)) and not self._check(q, first_only=True)
 
     def motion_free_by_spheres(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float,
-                               exact: Callable[[FloatArray], bool]) -> bool:
+                               exact: StateValidFn) -> bool:
         """`motion_valid` at the same states, each judged as by `state_free_by_spheres`."""
         if not self._broad_phase_usable():
             return self.motion_valid(q_a, q_b, resolution_rad)
@@ -549,7 +549,7 @@ class CollisionWorld:
                                    resolution_rad, exact)
 
     def _suspects_free(self, a: FloatArray, b: FloatArray, resolution_rad: float,
-                       exact: Callable[[FloatArray], bool]) -> bool:
+                       exact: StateValidFn) -> bool:
         """The edge's broad-phase suspects, in `motion_valid` order, are each either asked of
         FCL (where `exact`) and free, or none exist. The first suspect is tried alone first
         because a blocked edge's first suspect usually is a collision."""

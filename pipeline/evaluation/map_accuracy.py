@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.evaluation.surface_sampling import sample_object_surfaces
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 
 _NEIGHBOURS = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.int64)
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 
 MBM_FORMAT = "mbm-primitives/1"
 """The only `format` string this parser accepts."""

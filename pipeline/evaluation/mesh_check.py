@@ -23,7 +23,7 @@ from robonav.pipeline.robot.link_geometry import LinkShape
 from robonav.pipeline.planning.metrics import as_path, interpolate_path
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 
 FINE_STEP_RAD = 0.01
 """Default largest single-joint change between re-checked states [rad]."""

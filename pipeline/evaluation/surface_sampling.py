@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 
 
 def sample_object_surfaces(objects: Sequence[SceneObject], *, spacing_m: float,

@@ -16,8 +16,8 @@ import numpy.typing as npt
 import open3d as o3d
 import scipy.ndimage as ndi
 
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
+from robonav.pipeline.types import FloatArray, IntArray
+
 
 
 @dataclass(frozen=True)

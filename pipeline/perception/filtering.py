@@ -13,8 +13,8 @@ import numpy as np
 import numpy.typing as npt
 import open3d as o3d
 
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
+from robonav.pipeline.types import BoolArray, FloatArray
+
 
 
 def validate_points(points: npt.ArrayLike, name: str, *, allow_non_finite: bool = False) -> FloatArray:

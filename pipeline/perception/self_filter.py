@@ -17,7 +17,8 @@ import numpy.typing as npt
 import open3d as o3d
 
 from robonav.pipeline.perception.config import PerceptionConfig
-from robonav.pipeline.perception.filtering import BoolArray, FloatArray, validate_points, validate_transform
+from robonav.pipeline.perception.filtering import validate_points, validate_transform
+from robonav.pipeline.types import BoolArray, FloatArray
 
 
 @dataclass(frozen=True)

@@ -46,14 +46,13 @@ from __future__ import annotations
 import enum
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
 
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray, StateValidFn
 
 _DAMPING = 1e-2
 """lambda of the damped least squares step (dimensionless on the 6-D log error)."""
@@ -131,7 +130,7 @@ def solve_ik(
     rng: np.random.Generator,
     position_tolerance_m: float = 1e-3,
     orientation_tolerance_rad: float | None = 0.01,
-    is_valid: Callable[[FloatArray], bool] | None = None,
+    is_valid: StateValidFn | None = None,
     seed_q: FloatArray | None = None,
     max_restarts: int = 20,
     max_iterations: int = 200,

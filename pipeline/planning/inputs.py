@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
+
 
 
 def joint_vector(value: FloatArray, label: str, n: int | None = None) -> FloatArray:

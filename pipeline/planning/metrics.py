@@ -6,7 +6,8 @@ import math
 
 import numpy as np
 
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
+
 
 
 def as_path(path: FloatArray, label: str = "path") -> FloatArray:

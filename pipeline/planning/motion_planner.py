@@ -13,7 +13,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -28,7 +28,7 @@ from robonav.pipeline.planning.result import PlanResult, PlanStatus
 from robonav.pipeline.planning.shortcut import shortcut_path
 from robonav.pipeline.planning.start_escape import escape_start
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray, MotionValidFn, StateValidFn
 
 BASELINES: tuple[str, ...] = ("astar", "dijkstra", "potential_field")
 """Seed baselines the literature compares against (slow in 7-D; see their modules)."""
@@ -84,6 +84,21 @@ class PlanProblem:
     """(3,) upper corner of that box [m]."""
 
 
+SearchMode = Literal["", "sphere_first", "exact"]
+
+
+@dataclass(frozen=True)
+class StartEscape:
+    """How a plan left a start inside the robot's padding (see `start_escape`)."""
+
+    from_rad: FloatArray
+    """(n,) the requested start [rad]."""
+    to_rad: FloatArray
+    """(n,) the free state the search started from [rad]."""
+    pairs: tuple[str, ...]
+    """The `link|obstacle` pairs in contact at the requested start."""
+
+
 @dataclass(frozen=True)
 class PlanOutcome:
     status: PlanStatus
@@ -91,7 +106,14 @@ class PlanOutcome:
     path: FloatArray | None = None
     """(K, n) waypoints [rad] when status is SUCCESS."""
     details: dict[str, Any] = field(default_factory=dict)
-    """Machine-readable specifics: colliding pairs, violated joints."""
+    """Machine-readable specifics of a failure (colliding pairs, violated joints), as an error
+    reply's `details` carries them."""
+    search: SearchMode = ""
+    """Which search found the path: sphere-first or exact ("" before any search ran)."""
+    start_escape: StartEscape | None = None
+    """Set when the start was inside the padding and the path begins with a way out of it."""
+    attempt_lengths_rad: tuple[float, ...] = ()
+    """Path length of every successful attempt of `num_planning_attempts` [rad]."""
     planner_id: str = ""
     """The planner that produced the path (for `auto`, the one it chose or that won the race)."""
     planning_time_s: float = 0.0
@@ -187,24 +209,23 @@ class MotionPlanner:
                 last_failure = outcome
         if best is None:
             return last_failure or PlanOutcome(PlanStatus.TIMEOUT, "no planning time left", planner_id=problem.planner_id)
-        best = dataclasses.replace(best, details={**best.details, "attempt_lengths_rad": lengths})
+        best = dataclasses.replace(best, attempt_lengths_rad=tuple(lengths))
         return best if real_start is None else self._from_real_start(best, real_start, start_problem)
 
     def _from_real_start(self, outcome: PlanOutcome, real_start: FloatArray, start_problem: PlanOutcome) -> PlanOutcome:
         """`outcome` planned from an escape state, with the real start put in front (see `start_escape`)."""
         assert outcome.path is not None
         path = np.vstack([real_start, outcome.path])
-        escape = {"from_rad": real_start.tolist(), "to_rad": outcome.path[0].tolist(),
-                  "pairs": start_problem.details.get("pairs", [])}
+        escape = StartEscape(from_rad=real_start, to_rad=outcome.path[0], pairs=tuple(start_problem.details.get("pairs", ())))
         clearance = outcome.min_clearance_m
         if self.config.report_clearance:
             clearance = min(clearance, self.world.clearance_m(real_start))
         return dataclasses.replace(
             outcome, path=path, path_length_rad=path_length_rad(path), max_joint_step_rad=max_joint_step_rad(path),
             min_clearance_m=clearance, detail=f"{outcome.detail}; left the start's padding ({start_problem.detail})",
-            details={**outcome.details, "start_escape": escape})
+            start_escape=escape)
 
-    def _validity(self, problem: PlanProblem):  # noqa: ANN202 - a pair of callables
+    def _validity(self, problem: PlanProblem) -> tuple[StateValidFn, MotionValidFn]:
         if problem.workspace_min_m is None and problem.workspace_max_m is None:
             return self._is_valid, self._motion_valid
         if problem.workspace_min_m is None or problem.workspace_max_m is None:
@@ -230,7 +251,8 @@ class MotionPlanner:
 
         return is_valid, motion_valid
 
-    def _goal_set(self, problem: PlanProblem, start: FloatArray, is_valid, rng: np.random.Generator):  # noqa: ANN001,ANN202
+    def _goal_set(self, problem: PlanProblem, start: FloatArray, is_valid: StateValidFn,
+                  rng: np.random.Generator) -> FloatArray | PlanOutcome | None:
         """The (G, n) goal set, or a PlanOutcome saying why there is none."""
         if (problem.goals_rad is None) == (problem.pose_goal is None):
             raise ValueError("give exactly one of goals_rad and pose_goal")
@@ -259,7 +281,7 @@ class MotionPlanner:
             return np.array(kept)
         return first_problem
 
-    def _state_problem(self, q: FloatArray, is_valid, which: str,  # noqa: ANN001
+    def _state_problem(self, q: FloatArray, is_valid: StateValidFn, which: str,
                        invalid: PlanStatus) -> PlanOutcome | None:
         """Why the start or a goal `q` cannot be planned from/to (limits, collisions, workspace), or None."""
         violations = self.robot.check_joint_limits(q)
@@ -275,7 +297,7 @@ class MotionPlanner:
                                details={"which": which, "workspace": True})
         return None
 
-    def _goals_near(self, goal: FloatArray, tolerance: float, is_valid, rng: np.random.Generator,  # noqa: ANN001
+    def _goals_near(self, goal: FloatArray, tolerance: float, is_valid: StateValidFn, rng: np.random.Generator,
                     samples: int = 64) -> list[FloatArray]:
         low = np.maximum(goal - tolerance, self.robot.lower_limits_rad)
         high = np.minimum(goal + tolerance, self.robot.upper_limits_rad)
@@ -284,7 +306,8 @@ class MotionPlanner:
         valid.sort(key=lambda q: float(np.max(np.abs(q - goal))))
         return valid[:4]
 
-    def _pose_goal_set(self, problem: PlanProblem, start: FloatArray, is_valid, rng: np.random.Generator):  # noqa: ANN001,ANN202
+    def _pose_goal_set(self, problem: PlanProblem, start: FloatArray, is_valid: StateValidFn,
+                       rng: np.random.Generator) -> FloatArray | PlanOutcome:
         pose = problem.pose_goal
         assert pose is not None
         result = solve_ik(
@@ -314,7 +337,8 @@ class MotionPlanner:
                 return True
         return False
 
-    def _attempt(self, problem: PlanProblem, start: FloatArray, goals: FloatArray, is_valid, motion_valid,  # noqa: ANN001
+    def _attempt(self, problem: PlanProblem, start: FloatArray, goals: FloatArray, is_valid: StateValidFn,
+                 motion_valid: MotionValidFn,
                  budget_s: float, rng: np.random.Generator) -> PlanOutcome:
         """Search, sphere-first, then exactly if that found nothing.
 
@@ -340,7 +364,7 @@ class MotionPlanner:
                 outcome = self._search(problem, start, goals, is_valid, motion_valid, budget_s * share, rng)
             finally:
                 self._sphere_first = False
-            outcome = dataclasses.replace(outcome, details={**outcome.details, "search": "sphere_first"})
+            outcome = dataclasses.replace(outcome, search="sphere_first")
             if outcome.status is not PlanStatus.TIMEOUT or share >= 1.0:
                 return outcome
             spent_s = time.perf_counter() - t0
@@ -349,11 +373,12 @@ class MotionPlanner:
             exact = self._search(problem, start, goals, is_valid, motion_valid, budget_s - spent_s, rng)
             detail = exact.detail if exact.status is PlanStatus.SUCCESS else (
                 f"{exact.detail} (after {spent_s:.3f} s of sphere-first search)")
-            return dataclasses.replace(exact, detail=detail, details={**exact.details, "search": "exact"})
+            return dataclasses.replace(exact, detail=detail, search="exact")
         outcome = self._search(problem, start, goals, is_valid, motion_valid, budget_s, rng)
-        return dataclasses.replace(outcome, details={**outcome.details, "search": "exact"})
+        return dataclasses.replace(outcome, search="exact")
 
-    def _search(self, problem: PlanProblem, start: FloatArray, goals: FloatArray, is_valid, motion_valid,  # noqa: ANN001
+    def _search(self, problem: PlanProblem, start: FloatArray, goals: FloatArray, is_valid: StateValidFn,
+                motion_valid: MotionValidFn,
                 budget_s: float, rng: np.random.Generator) -> PlanOutcome:
         t0 = time.perf_counter()
         deadline = t0 + budget_s
@@ -391,7 +416,8 @@ class MotionPlanner:
                     or time.perf_counter() >= deadline):
                 return outcome
 
-    def _baseline(self, planner_id: str, start: FloatArray, goals: FloatArray, is_valid, motion_valid,  # noqa: ANN001
+    def _baseline(self, planner_id: str, start: FloatArray, goals: FloatArray, is_valid: StateValidFn,
+                  motion_valid: MotionValidFn,
                   budget_s: float, rng: np.random.Generator) -> PlanResult:
         # Single-goal baselines aim at the goal nearest the start.
         goal = goals[int(np.argmin(np.linalg.norm(goals - start, axis=1)))]
@@ -437,7 +463,7 @@ class MotionPlanner:
     def _remember(self, planner_id: str, success: bool) -> None:
         self._history.setdefault(planner_id, deque(maxlen=_AUTO_HISTORY)).append(success)
 
-    def _finish(self, problem: PlanProblem, path: FloatArray, goals: FloatArray, motion_valid,  # noqa: ANN001
+    def _finish(self, problem: PlanProblem, path: FloatArray, goals: FloatArray, motion_valid: MotionValidFn,
                 planner_id: str, planning_time_s: float, rng: np.random.Generator) -> PlanOutcome:
         simplify_start = time.perf_counter()
         raw = path
@@ -468,7 +494,7 @@ class MotionPlanner:
             goal_index=goal_index,
         )
 
-    def _revalidate(self, path: FloatArray, motion_valid) -> bool:  # noqa: ANN001
+    def _revalidate(self, path: FloatArray, motion_valid: MotionValidFn) -> bool:
         """Every segment of `path` passes the exact check at the path check resolution.
 
         With a finer path check than the edges, the edge-resolution check is not repeated (the

@@ -28,7 +28,7 @@ from ompl import util as ou
 
 from robonav.pipeline.planning.inputs import bounds_violation, joint_vector
 from robonav.pipeline.planning.result import PlanResult, PlanStatus
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray, MotionValidFn, StateValidFn
 
 PLANNER_CLASSES: dict[str, Callable[[ob.SpaceInformation], ob.Planner]] = {
     "rrtconnect": og.RRTConnect,
@@ -87,14 +87,14 @@ class JointSpaceProblem:
 
     lower_rad: FloatArray
     upper_rad: FloatArray
-    is_valid: Callable[[FloatArray], bool]
-    motion_valid: Callable[[FloatArray, FloatArray], bool]
+    is_valid: StateValidFn
+    motion_valid: MotionValidFn
 
 
 class _EdgeValidator(ob.MotionValidator):
     """Checks a whole tree edge with one Python call instead of OMPL's per-state discretisation."""
 
-    def __init__(self, info: ob.SpaceInformation, motion_valid: Callable[[FloatArray, FloatArray], bool],
+    def __init__(self, info: ob.SpaceInformation, motion_valid: MotionValidFn,
                  to_array: Callable[[ob.State], FloatArray]) -> None:
         super().__init__(info)
         self._motion_valid = motion_valid
@@ -330,8 +330,8 @@ def plan_ompl(
     *,
     lower_rad: FloatArray,
     upper_rad: FloatArray,
-    is_valid: Callable[[FloatArray], bool],
-    motion_valid: Callable[[FloatArray, FloatArray], bool],
+    is_valid: StateValidFn,
+    motion_valid: MotionValidFn,
     time_limit_s: float,
     range_rad: float = 0.0,
 ) -> PlanResult:

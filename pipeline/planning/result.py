@@ -5,7 +5,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
+
 
 
 class PlanStatus(enum.Enum):

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import numba as nb
 import numpy as np
 
 from robonav.pipeline.planning.metrics import as_path
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray, MotionValidFn
 
 _EPS = 1e-9
 
@@ -17,7 +16,7 @@ _EPS = 1e-9
 def shortcut_path(
     path: FloatArray,
     *,
-    motion_valid: Callable[[FloatArray, FloatArray], bool],
+    motion_valid: MotionValidFn,
     rng: np.random.Generator,
     iterations: int,
     patience: int = 0,
@@ -155,7 +154,7 @@ def _splice(arr: FloatArray, i1: int, i2: int, p1: FloatArray, p2: FloatArray) -
     return out
 
 
-def _drop_redundant(arr: FloatArray, motion_valid: Callable[[FloatArray, FloatArray], bool]) -> FloatArray:
+def _drop_redundant(arr: FloatArray, motion_valid: MotionValidFn) -> FloatArray:
     """Greedy pass: skip a waypoint when the last kept one connects straight to the next one."""
     keep = [0]
     for i in range(1, arr.shape[0] - 1):

@@ -22,16 +22,15 @@ padding away from every seen voxel. Judged on the inflated map, such starts stay
 
 from __future__ import annotations
 
-from typing import Callable
 
 import numpy as np
 
 from robonav.pipeline.collision.world import OCCUPANCY, CollisionWorld
 from robonav.pipeline.planning.metrics import interpolate_path
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray, StateValidFn
 
 
-def escape_start(world: CollisionWorld, start: FloatArray, is_valid: Callable[[FloatArray], bool],
+def escape_start(world: CollisionWorld, start: FloatArray, is_valid: StateValidFn,
                  rng: np.random.Generator, *, radius_rad: float, samples: int,
                  resolution_rad: float) -> FloatArray | None:
     """A valid state within `radius_rad` (every joint) of `start` that the arm can reach without
@@ -74,7 +73,7 @@ def escape_start(world: CollisionWorld, start: FloatArray, is_valid: Callable[[F
     return None
 
 
-def _touching_rule(world: CollisionWorld, states: FloatArray) -> Callable[[FloatArray], bool]:
+def _touching_rule(world: CollisionWorld, states: FloatArray) -> StateValidFn:
     """Whether a state on the way out touches what it must not (see the module docstring)."""
     seen = world.seen_voxels_m
     if seen is None:

@@ -24,7 +24,7 @@ from typing import Literal
 import numpy as np
 
 from robonav.pipeline.collision.world import CollisionWorld
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 
 AcmReason = Literal["adjacent", "default", "always", "never"]
 ACM_REASONS: tuple[str, ...] = ("adjacent", "default", "always", "never")

@@ -19,13 +19,11 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
-import numpy.typing as npt
 import pinocchio as pin
 
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray, IntArray
 
-IntArray = npt.NDArray[np.int64]
 
 REVOLUTE = 0
 PRISMATIC = 1

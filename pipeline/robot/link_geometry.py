@@ -15,12 +15,11 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import numpy.typing as npt
 import open3d as o3d
 
-from robonav.pipeline.transforms import FloatArray, transform_points
+from robonav.pipeline.transforms import transform_points
+from robonav.pipeline.types import FloatArray, IntArray
 
-IntArray = npt.NDArray[np.int64]
 ShapeKind = Literal["mesh", "box", "cylinder", "sphere"]
 
 _CYLINDER_SIDES = 24

@@ -17,7 +17,7 @@ import pinocchio as pin
 
 from robonav.pipeline.robot.link_geometry import LinkShape, convex_hull, parse_collision_shapes
 from robonav.pipeline.robot.config import RobotConfig
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 
 PYBULLET_DATA_PREFIX = "pybullet_data:"
 

@@ -7,7 +7,6 @@ replaced by its world bounding box extended down to the floor (`perceivable_obje
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -17,7 +16,7 @@ import numpy.typing as npt
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 
 _CORNER_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
 

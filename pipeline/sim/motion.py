@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from robonav.pipeline.config import require
 from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.wire.codes import ExecutionState
 
 MotionAction = Literal["move", "remove", "add"]
 
@@ -121,9 +122,9 @@ class MotionScript:
         self._armed.clear()
         return count
 
-    def on_progress(self, trajectory_id: str, state: str, progress: float) -> None:
+    def on_progress(self, trajectory_id: str, state: ExecutionState, progress: float) -> None:
         """Feed one executor status; progress triggers that hold are latched."""
-        if state != "executing":
+        if state != ExecutionState.EXECUTING:
             return
         for armed in self._armed:
             m = armed.motion

@@ -21,17 +21,11 @@ from typing import Protocol
 
 import numpy as np
 
+from robonav.pipeline.trajectory.config import ExecutorConfig
 from robonav.pipeline.trajectory.stopping import stop_trajectory
 from robonav.pipeline.trajectory.timing import JointTrajectory, TrajectoryLimits, blend_from_state
-from robonav.pipeline.transforms import FloatArray
-
-JOINT_STATE_STALE = "JOINT_STATE_STALE"
-"""Status error code: no joint state for longer than the watchdog timeout while moving."""
-TRACKING_ERROR = "TRACKING_ERROR"
-"""Status error code: measured position too far from the commanded one while moving."""
-PATH_BLOCKED = "PATH_BLOCKED"
-"""Status error code: a new obstacle blocks the rest of the path (and no replan reached the goal)."""
-
+from robonav.pipeline.types import FloatArray
+from robonav.pipeline.wire.codes import ErrorCode, ExecutionResult, ExecutionState
 
 class SampledTrajectory(Protocol):
     @property
@@ -54,27 +48,15 @@ class SetpointSample:
 
 @dataclass(frozen=True)
 class ExecutionStatus:
-    state: str
+    state: ExecutionState
     trajectory_id: str
     progress: float
     time_from_start_s: float
     duration_s: float
-    last_result: str
-    error_code: str
+    last_result: ExecutionResult
+    error_code: ErrorCode | None
     error_message: str
     replans: int
-
-
-@dataclass(frozen=True)
-class WatchdogConfig:
-    joint_state_timeout_s: float
-    """A joint state older than this while moving trips the watchdog [s]."""
-    max_tracking_error_rad: float
-    """|commanded - measured| of any joint above this while moving trips it [rad]."""
-    tracking_latency_s: float = 0.3
-    """A measurement is compared with every setpoint of this last window and the closest one
-    counts: the measured state lags the commanded one by the loop's latency (executor → robot
-    → joint state → executor), which under load reaches a few tens of milliseconds [s]."""
 
 
 _RECENT_SETPOINTS = 1000
@@ -87,10 +69,10 @@ class ExecutionStateMachine:
     def __init__(self, limits: Limits) -> None:
         """Args: limits: the robot's full (unscaled) limits; an emergency stop uses them."""
         self.limits = limits
-        self.state = "idle"
+        self.state = ExecutionState.IDLE
         self.trajectory_id = ""
-        self.last_result = "none"
-        self.error_code = ""
+        self.last_result = ExecutionResult.NONE
+        self.error_code: ErrorCode | None = None
         self.error_message = ""
         self._trajectory: SampledTrajectory | None = None
         self._started_at_s = 0.0
@@ -106,7 +88,7 @@ class ExecutionStateMachine:
 
     @property
     def busy(self) -> bool:
-        return self.state in ("executing", "stopping")
+        return self.state.busy
 
     @property
     def last_setpoint(self) -> SetpointSample | None:
@@ -150,8 +132,8 @@ class ExecutionStateMachine:
         self._started_at_s = now_s
         self.revision += 1
         self.trajectory_id = trajectory_id
-        self.state = "executing"
-        self.error_code = ""
+        self.state = ExecutionState.EXECUTING
+        self.error_code = None
         self.error_message = ""
         self._fault = False
         self._replan_after_stop = False
@@ -167,8 +149,8 @@ class ExecutionStateMachine:
         machine ends in `replanning` instead of `stopped`; a stop while `replanning` ends it
         in `stopped`.
         """
-        if self.state == "replanning":
-            self.state, self.last_result = "stopped", "stopped"
+        if self.state is ExecutionState.REPLANNING:
+            self.state, self.last_result = ExecutionState.STOPPED, ExecutionResult.STOPPED
             return
         current = self.commanded_state(now_s)
         if current is None:
@@ -191,13 +173,13 @@ class ExecutionStateMachine:
         )
         self._started_at_s = now_s
         self.revision += 1
-        self.state = "stopping"
+        self.state = ExecutionState.STOPPING
 
-    def fault(self, now_s: float, code: str, message: str) -> None:
+    def fault(self, now_s: float, code: ErrorCode, message: str) -> None:
         """Brake smoothly (like a normal stop) and report `error` with `code` once at rest
         (at once when `replanning`, where the arm already rests)."""
-        if self.state == "replanning":
-            self.state, self.last_result = "error", "aborted"
+        if self.state is ExecutionState.REPLANNING:
+            self.state, self.last_result = ExecutionState.ERROR, ExecutionResult.ABORTED
             self.error_code, self.error_message = code, message
             return
         if not self.busy:
@@ -208,25 +190,26 @@ class ExecutionStateMachine:
         self._fault = True
 
     def check_watchdog(self, now_s: float, measured_q: FloatArray | None, joint_state_age_s: float,
-                       config: WatchdogConfig) -> str | None:
+                       config: ExecutorConfig) -> ErrorCode | None:
         """Trip a fault on a stale joint state or a tracking error while executing.
 
         Args:
             now_s: Current time [s].
             measured_q: (n,) latest measured position in robot order [rad], or None if never received.
             joint_state_age_s: Time since that joint state arrived [s] (inf if never).
-            config: The thresholds.
+            config: The watchdog's thresholds (`joint_state_timeout_s`, `max_tracking_error_rad`,
+                `tracking_latency_s`).
 
         Returns:
             The error code when it tripped now, else None.
         """
-        if self.state != "executing":
+        if self.state is not ExecutionState.EXECUTING:
             return None  # a stop or fault is already bringing the arm to rest
         if joint_state_age_s > config.joint_state_timeout_s:
             age = "never received" if not np.isfinite(joint_state_age_s) else f"{joint_state_age_s:.3f} s old"
-            self.fault(now_s, JOINT_STATE_STALE,
+            self.fault(now_s, ErrorCode.JOINT_STATE_STALE,
                        f"joint state {age} (timeout {config.joint_state_timeout_s} s): stopped '{self.trajectory_id}'")
-            return JOINT_STATE_STALE
+            return ErrorCode.JOINT_STATE_STALE
         if measured_q is not None and self._recent_q and \
                 np.max(np.abs(self._recent_q[-1] - measured_q)) > config.max_tracking_error_rad:
             # Only then look back over the latency window (the common case costs one comparison).
@@ -235,10 +218,10 @@ class ExecutionStateMachine:
             error = errors[int(np.argmin(np.max(errors, axis=1)))]
             joint = int(np.argmax(error))
             if error[joint] > config.max_tracking_error_rad:
-                self.fault(now_s, TRACKING_ERROR,
+                self.fault(now_s, ErrorCode.TRACKING_ERROR,
                            f"joint {joint} is {error[joint]:.3f} rad from its setpoint (limit "
                            f"{config.max_tracking_error_rad} rad): stopped '{self.trajectory_id}'")
-                return TRACKING_ERROR
+                return ErrorCode.TRACKING_ERROR
         return None
 
     def tick(self, now_s: float) -> SetpointSample | None:
@@ -253,21 +236,21 @@ class ExecutionStateMachine:
         self._recent_t.append(now_s)
         if t >= self._trajectory.duration_s:
             # The final sample is exactly at rest at the goal; publish it, then go idle.
-            if self.state == "executing":
-                self.state, self.last_result = "idle", "succeeded"
+            if self.state is ExecutionState.EXECUTING:
+                self.state, self.last_result = ExecutionState.IDLE, ExecutionResult.SUCCEEDED
             elif self._fault:
-                self.state, self.last_result = "error", "aborted"
+                self.state, self.last_result = ExecutionState.ERROR, ExecutionResult.ABORTED
             elif self._replan_after_stop:
-                self.state = "replanning"
+                self.state = ExecutionState.REPLANNING
             else:
-                self.state, self.last_result = "stopped", "stopped"
+                self.state, self.last_result = ExecutionState.STOPPED, ExecutionResult.STOPPED
             self._trajectory = None
         return sample
 
     def status(self, now_s: float) -> ExecutionStatus:
         duration = self._trajectory.duration_s if self._trajectory is not None else 0.0
         elapsed = float(np.clip(now_s - self._started_at_s, 0.0, duration)) if self._trajectory is not None else 0.0
-        progress = 1.0 if self._trajectory is None and self.last_result == "succeeded" else (
+        progress = 1.0 if self._trajectory is None and self.last_result is ExecutionResult.SUCCEEDED else (
             elapsed / duration if duration > 0 else 0.0)
         return ExecutionStatus(self.state, self.trajectory_id, progress, elapsed, duration,
                                self.last_result, self.error_code, self.error_message, self.replans)

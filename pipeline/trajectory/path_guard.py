@@ -22,7 +22,7 @@ from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.collision.spheres.sphere_model import robot_sphere_model
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 
 
 class PathGuard:

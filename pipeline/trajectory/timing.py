@@ -27,7 +27,7 @@ at rest.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -35,10 +35,10 @@ import numpy as np
 import numpy.typing as npt
 import ruckig
 
-FloatArray = npt.NDArray[np.float64]
+from robonav.pipeline.types import FloatArray, StateValidFn
+
 JointState = tuple[FloatArray, FloatArray, FloatArray]
 """(q, qd, qdd): position, velocity and acceleration, each (n,)."""
-StateValidFn = Callable[[FloatArray], bool]
 """state_valid(q (n,)) -> True when q is allowed (e.g. collision free)."""
 
 _DUPLICATE_WAYPOINT_TOL = 1e-9

@@ -22,39 +22,12 @@ from typing import Any, TypeVar, get_type_hints
 
 import msgpack
 import numpy as np
-import numpy.typing as npt
+
+from robonav.pipeline.wire.codes import ErrorCode
 
 SCHEMA_VERSION = 1
 
-FloatArray = npt.NDArray[np.float64]
 M = TypeVar("M", bound="Message")
-
-
-class ErrorCode(str, enum.Enum):
-    """The closed list of error codes a query can answer with."""
-
-    MALFORMED_MESSAGE = "MALFORMED_MESSAGE"
-    """Not msgpack, not a map, a missing/unknown key or a value of the wrong type."""
-    UNSUPPORTED_VERSION = "UNSUPPORTED_VERSION"
-    INVALID_REQUEST = "INVALID_REQUEST"
-    """Well-formed but meaningless: NaN, wrong joint count or names, bad scaling factors."""
-    OUT_OF_JOINT_LIMITS = "OUT_OF_JOINT_LIMITS"
-    START_IN_COLLISION = "START_IN_COLLISION"
-    GOAL_IN_COLLISION = "GOAL_IN_COLLISION"
-    GOAL_UNREACHABLE = "GOAL_UNREACHABLE"
-    """Inverse kinematics found no configuration within a Cartesian goal's tolerances."""
-    NO_SOLUTION = "NO_SOLUTION"
-    """The planner found no path within the allowed planning time."""
-    UNKNOWN_PLANNER = "UNKNOWN_PLANNER"
-    NO_JOINT_STATE = "NO_JOINT_STATE"
-    """No start given and no joint state received yet."""
-    OCCUPANCY_MISSING = "OCCUPANCY_MISSING"
-    OCCUPANCY_STALE = "OCCUPANCY_STALE"
-    EXECUTOR_BUSY = "EXECUTOR_BUSY"
-    """An execute request arrived while a trajectory is streaming or stopping."""
-    INTERNAL_ERROR = "INTERNAL_ERROR"
-    PAYLOAD_TOO_LARGE = "PAYLOAD_TOO_LARGE"
-    """The request payload is larger than the service's `limits.max_request_bytes`."""
 
 
 class ProtocolError(ValueError):
@@ -99,6 +72,8 @@ class Message:
                 continue
             if "array" in f.metadata:
                 out[f.name] = encode_array(np.asarray(value), f.metadata["array"].dtype)
+            elif isinstance(value, enum.Enum):
+                out[f.name] = value.value
             elif isinstance(value, Message):
                 out[f.name] = value._fields_to_dict()
             elif dataclasses.is_dataclass(value) and not isinstance(value, type):
@@ -216,6 +191,15 @@ def _decode_value(tp: Any, value: Any, *, key: str, owner: str) -> Any:
     if origin in (typing.Union, types.UnionType):
         inner = [a for a in args if a is not type(None)]
         return _decode_value(inner[0], value, key=key, owner=owner)
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        if not isinstance(value, str):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a string, got {type(value).__name__}", {"key": key})
+        try:
+            return tp(value)
+        except ValueError:
+            known = [m.value for m in tp]
+            raise ProtocolError(ErrorCode.INVALID_REQUEST, f"{owner}: '{key}' must be one of {known}, got {value!r}",
+                                {"key": key, "known": known}) from None
     if isinstance(tp, type) and issubclass(tp, Message):
         if not isinstance(value, dict):
             raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a map", {"key": key})

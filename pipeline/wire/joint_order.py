@@ -1,10 +1,14 @@
-"""Joint vectors named by a client, mapped onto the robot's joint order."""
+"""Joint vectors named by a client or a joint state, mapped onto the robot's joint order."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from robonav.pipeline.wire.codec import ErrorCode, ProtocolError
+from collections.abc import Sequence
+
+from robonav.pipeline.types import FloatArray
+from robonav.pipeline.wire.codec import ProtocolError
+from robonav.pipeline.wire.codes import ErrorCode
 
 
 def reorder_to_robot(values: np.ndarray, names: tuple[str, ...] | None, robot_names: tuple[str, ...], key: str) -> np.ndarray:
@@ -31,3 +35,26 @@ def reorder_to_robot(values: np.ndarray, names: tuple[str, ...] | None, robot_na
                             f"joint_names {list(names)} must name exactly the planning joints {list(robot_names)}",
                             {"key": "joint_names", "expected": list(robot_names), "got": list(names)})
     return values[..., [names.index(name) for name in robot_names]]
+
+
+def positions_by_name(names: Sequence[str], positions: Sequence[float] | np.ndarray,
+                      wanted: Sequence[str]) -> FloatArray | None:
+    """The values of the `wanted` joints, in that order, from a vector named by `names`.
+
+    A joint state may name more joints than the robot plans with (fingers) and in any order.
+
+    Returns:
+        (len(wanted),) float64, or None when `names` lacks any wanted joint.
+    """
+    index = {name: i for i, name in enumerate(names)}
+    try:
+        rows = [index[name] for name in wanted]
+    except KeyError:
+        return None
+    return np.asarray(positions, dtype=np.float64)[rows]
+
+
+def missing_joints(names: Sequence[str], wanted: Sequence[str]) -> list[str]:
+    """The `wanted` joints `names` lacks, in `wanted` order."""
+    have = set(names)
+    return [name for name in wanted if name not in have]

@@ -11,10 +11,10 @@ from typing import Any, Literal
 import numpy as np
 
 from robonav.pipeline.camera import CameraIntrinsics
-from robonav.pipeline.wire.codec import ErrorCode, FloatArray, Message, ProtocolError, array_field, unpack
+from robonav.pipeline.types import FloatArray
+from robonav.pipeline.wire.codec import Message, ProtocolError, array_field, unpack
+from robonav.pipeline.wire.codes import ErrorCode, ExecutionResult, ExecutionState
 
-ExecutorState = Literal["idle", "executing", "stopping", "stopped", "error"]
-EXECUTOR_STATES: tuple[str, ...] = ("idle", "executing", "stopping", "stopped", "error", "replanning")
 
 
 def _check_same_length(owner: str, names: tuple[str, ...], **arrays: np.ndarray | None) -> None:
@@ -365,15 +365,16 @@ class ExecutorStatus(Message):
     """`executor/status` (pub)."""
 
     stamp: float
-    state: str
+    state: ExecutionState
     trajectory_id: str = ""
     progress: float = 0.0
     """Fraction of the current trajectory's duration done, 0..1."""
     time_from_start_s: float = 0.0
     duration_s: float = 0.0
-    last_result: str = "none"
+    last_result: ExecutionResult = ExecutionResult.NONE
     """Outcome of the last trajectory: none, succeeded, stopped, aborted."""
     error_code: str = ""
+    """An `ErrorCode` value in state `error` (JOINT_STATE_STALE, TRACKING_ERROR, PATH_BLOCKED), else ""."""
     error_message: str = ""
     replans: int = 0
     """New paths planned for this trajectory id after its path was blocked."""
@@ -384,8 +385,9 @@ class ExecutorStatus(Message):
     """Wall-clock time of that stop command [s]."""
 
     def __post_init__(self) -> None:
-        if self.state not in EXECUTOR_STATES:
-            raise ValueError(f"ExecutorStatus: state must be one of {EXECUTOR_STATES}, got {self.state!r}")
+        # Plain strings are accepted and checked here, so a bad state fails where it is made.
+        object.__setattr__(self, "state", ExecutionState(self.state))
+        object.__setattr__(self, "last_result", ExecutionResult(self.last_result))
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,7 @@ import yaml
 
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.wire.messages import JointState, Setpoint
+from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import intruder_for_trajectory
 from robonav.pipeline.robot.model import RobotModel
@@ -378,7 +379,7 @@ def _drop_trial(client: Any, position: list[np.ndarray], box_on: Any, box_since:
     client.wait_for_trajectory(swing.trajectory_id, swing.duration_s + 5.0)
     status = client.status
     box_on.clear()
-    if status is None or status.error_code != "PATH_BLOCKED" or status.blocked_stamp is None or box_since.value <= 0:
+    if status is None or status.error_code != ErrorCode.PATH_BLOCKED or status.blocked_stamp is None or box_since.value <= 0:
         return None
     return float(status.blocked_stamp - box_since.value)
 

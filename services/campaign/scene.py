@@ -24,11 +24,11 @@ from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import Intruder, perceivable_objects, sample_goal
-from robonav.pipeline.trajectory.execution import PATH_BLOCKED
 from robonav.pipeline.trajectory.path_guard import PathGuard, map_settled
 from robonav.pipeline.sim.scenes import Scene
+from robonav.pipeline.wire.codes import ErrorCode, ExecutionState
 from robonav.services.campaign.intruder import INTRUDER_SLIDE_S, IntruderPlacer
-from robonav.services.client import QueryFailed, RobonavClient
+from robonav.services.client import QueryFailed, RobonavClient, trajectory_outcome
 from robonav.services.config import RobonavConfig
 from robonav.services.planner.scene_specs import object_spec
 
@@ -434,8 +434,7 @@ class SceneRunner:
                              0.0 if planned_on is None else planned_on.resolution_m)
 
         def finished() -> bool:
-            s = self.client.status
-            return s is not None and s.trajectory_id == trajectory_id and s.state in ("idle", "stopped", "error")
+            return self.client.trajectory_finished(trajectory_id)
 
         def woken() -> bool:
             return finished() or (self.client.occupancy is not None and self.client.occupancy.seq != seen_seq)
@@ -445,13 +444,13 @@ class SceneRunner:
             if finished():
                 status = self.client.status
                 assert status is not None
-                if status.state == "error" and status.error_code == PATH_BLOCKED:
+                if status.state is ExecutionState.ERROR and status.error_code == ErrorCode.PATH_BLOCKED:
                     record.executor_stops += 1
                     if status.blocked_after_frame_s is not None:
                         record.executor_stop_after_frame_s.append(round(status.blocked_after_frame_s, 3))
                     if record.intruder and record.executor_stop_after_rest_s is None and status.blocked_stamp:
                         record.executor_stop_after_rest_s = round(status.blocked_stamp - self._intruder_rest_at, 3)
-                return status.last_result if status.state == "idle" else status.state
+                return trajectory_outcome(status)
             occupancy = self.client.occupancy
             if occupancy is None or occupancy.seq == seen_seq:
                 continue

@@ -27,15 +27,16 @@ from dataclasses import dataclass
 import numpy as np
 import zenoh
 
-from robonav.pipeline.wire.joint_order import reorder_to_robot
+from robonav.pipeline.wire.joint_order import positions_by_name, reorder_to_robot
 from robonav.pipeline.wire.messages import (ErrorReply, ExecuteRequest, ExecuteResponse, ExecutorPath, ExecutorStatus,
                                        JointState, Occupancy, PlanRequest, PlanResponse, StopRequest,
                                        StopResponse)
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.trajectory.execution import PATH_BLOCKED, ExecutionStateMachine, Limits, WatchdogConfig
+from robonav.pipeline.trajectory.execution import ExecutionStateMachine, Limits
 from robonav.pipeline.trajectory.path_guard import PathGuard, map_settled
 from robonav.pipeline.trajectory.timing import JointTrajectory, time_parameterize
-from robonav.pipeline.wire.codec import ErrorCode, ProtocolError, unpack
+from robonav.pipeline.wire.codec import ProtocolError, unpack
+from robonav.pipeline.wire.codes import ErrorCode, ExecutionState
 from robonav.services.client import QueryFailed, query_one
 from robonav.services.common import (Node, declare_latched_publisher, declare_latched_subscriber, guarded_queryable,
                                      guarded_subscriber, decode_request, reply_ok, run_service)
@@ -93,8 +94,6 @@ class ExecutorNode(Node):
         """(n,) latest measured position in robot order [rad]."""
         self._measured_at_s = -np.inf
         """time.monotonic() when it arrived [s]."""
-        self._watchdog = WatchdogConfig(cfg.executor.joint_state_timeout_s, cfg.executor.max_tracking_error_rad,
-                                        cfg.executor.tracking_latency_s)
         keys = Keys(cfg.cell)
         self._stream = SetpointStream(cfg.zenoh, keys.setpoint, tuple(self.robot.joint_names), rate_hz=cfg.executor.rate_hz,
                                       busy_wait_s=cfg.executor.busy_wait_s,
@@ -144,9 +143,7 @@ class ExecutorNode(Node):
 
     def on_joint_state(self, sample: zenoh.Sample) -> None:
         state = JointState.from_wire(sample.payload.to_bytes())
-        by_name = dict(zip(state.names, state.position.tolist()))
-        measured = (np.array([by_name[n] for n in self.robot.joint_names])
-                    if all(n in by_name for n in self.robot.joint_names) else None)
+        measured = positions_by_name(state.names, state.position, self.robot.joint_names)
         with self._lock:
             self._joint_state = state
             if measured is not None and np.isfinite(measured).all():
@@ -233,9 +230,9 @@ class ExecutorNode(Node):
             if execution is None:
                 continue
             try:
-                if state == "replanning":
+                if state is ExecutionState.REPLANNING:
                     self._replan(execution)
-                elif state == "executing" and commanded is not None:
+                elif state is ExecutionState.EXECUTING and commanded is not None:
                     if baseline_generation != execution.generation:
                         # Only voxels new since the map the path was planned on count. Without
                         # any map then, the first one is the baseline.
@@ -293,7 +290,7 @@ class ExecutorNode(Node):
         if blocked_at is None:
             return
         with self._lock:
-            if self._execution is not execution or self.machine.state != "executing":
+            if self._execution is not execution or self.machine.state is not ExecutionState.EXECUTING:
                 return  # preempted or stopped meanwhile
             self._blocked_stamp = time.time()
             delay_s = self._blocked_stamp - occupancy.stamp
@@ -302,7 +299,7 @@ class ExecutorNode(Node):
                 self.machine.stop(self._switch_time(), scaling=self.cfg.executor.acceleration_scaling, replan=True)
                 outcome = "stopping to replan"
             else:
-                self.machine.fault(self._switch_time(), PATH_BLOCKED,
+                self.machine.fault(self._switch_time(), ErrorCode.PATH_BLOCKED,
                                    f"a new obstacle blocks the rest of '{execution.trajectory_id}' "
                                    f"(map {occupancy.seq}){'; no replans left' if execution.replan else ''}")
                 outcome = "stopping (replan not requested)" if not execution.replan else "stopping (no replans left)"
@@ -339,11 +336,11 @@ class ExecutorNode(Node):
             if left > 0 and self._monitor_stop.wait(self.cfg.executor.replan_delay_s):
                 return
             with self._lock:
-                if self._execution is not execution or self.machine.state != "replanning":
+                if self._execution is not execution or self.machine.state is not ExecutionState.REPLANNING:
                     return
         with self._lock:
-            if self._execution is execution and self.machine.state == "replanning":
-                self.machine.fault(time.monotonic(), PATH_BLOCKED,
+            if self._execution is execution and self.machine.state is ExecutionState.REPLANNING:
+                self.machine.fault(time.monotonic(), ErrorCode.PATH_BLOCKED,
                                    f"a new obstacle blocks '{execution.trajectory_id}' and replanning failed: "
                                    + "; ".join(errors[-3:]))
 
@@ -369,7 +366,7 @@ class ExecutorNode(Node):
         trajectory = self._time_parameterize(path, execution.velocity_scaling, execution.acceleration_scaling)
         baseline_map = self._baseline_map(plan.occupancy_stamp)
         with self._lock:
-            if self._execution is not execution or self.machine.state != "replanning":
+            if self._execution is not execution or self.machine.state is not ExecutionState.REPLANNING:
                 return  # a new request or a stop came in while planning
             self.machine.start(trajectory, execution.trajectory_id, self._switch_time(), replanned=True)
             self._stream_latest()
@@ -442,7 +439,7 @@ class ExecutorNode(Node):
             now = time.monotonic()
             with self._lock:
                 tripped = self.machine.check_watchdog(self._switch_time(), self._measured_q, now - self._measured_at_s,
-                                                      self._watchdog)
+                                                      self.cfg.executor)
                 self._stream_latest()
                 self.machine.tick(now)
                 # A state change is published at once, not at the next status period.
@@ -453,9 +450,12 @@ class ExecutorNode(Node):
             if status is not None:
                 next_status = now + status_period_s
                 published_state = status.state
-                self._status_pub.put(ExecutorStatus(stamp=time.time(), blocked_after_frame_s=self._blocked_after_frame_s,
-                                                    blocked_stamp=self._blocked_stamp,
-                                                    **status.__dict__).to_wire())
+                self._status_pub.put(ExecutorStatus(
+                    stamp=time.time(), state=status.state, trajectory_id=status.trajectory_id, progress=status.progress,
+                    time_from_start_s=status.time_from_start_s, duration_s=status.duration_s,
+                    last_result=status.last_result, error_code=status.error_code.value if status.error_code else "",
+                    error_message=status.error_message, replans=status.replans,
+                    blocked_after_frame_s=self._blocked_after_frame_s, blocked_stamp=self._blocked_stamp).to_wire())
             if not self._stream.alive:
                 log.error("the setpoint stream process died: stopping the executor")
                 return

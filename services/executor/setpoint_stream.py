@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from robonav.pipeline.trajectory.timing import JointTrajectory, TrajectoryLimits
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 from robonav.services.config import ZenohConfig
 
 log = logging.getLogger("robonav.executor.stream")

@@ -35,6 +35,7 @@ from robonav.pipeline.perception.maps.octree import OccupancyMap
 from robonav.pipeline.perception.maps.projection import ProjectionOccupancyMap
 from robonav.pipeline.perception.self_filter import perception_filters
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name
 from robonav.services.common import (
     Node,
     declare_latched_publisher,
@@ -65,8 +66,9 @@ class JointHistory:
         self._lock = threading.Lock()
 
     def add(self, state: JointState) -> None:
-        by_name = dict(zip(state.names, state.position.tolist()))
-        q = np.array([by_name[n] for n in self.joint_names])  # KeyError → dropped sample, counted
+        q = positions_by_name(state.names, state.position, self.joint_names)
+        if q is None:  # → a dropped sample, counted
+            raise ValueError(f"joint state lacks joints {missing_joints(state.names, self.joint_names)}")
         with self._lock:
             if self._stamps and state.stamp < self._stamps[-1]:
                 return  # out of order; the history must stay sorted

@@ -14,14 +14,15 @@ import numpy as np
 import zenoh
 
 from robonav.pipeline.collision.world import CollisionWorld
-from robonav.pipeline.wire.joint_order import reorder_to_robot
+from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name, reorder_to_robot
 from robonav.pipeline.wire.messages import JointState, Occupancy, PlanRequest, PlanResponse
 from robonav.pipeline.planning.motion_planner import PLANNERS, MotionPlanner, PlanProblem, PoseGoal
 from robonav.pipeline.planning.ompl_planners import seed_ompl_once
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.transforms import make_transform
-from robonav.pipeline.wire.codec import ErrorCode, ProtocolError
+from robonav.pipeline.wire.codec import ProtocolError
+from robonav.pipeline.wire.codes import ErrorCode
 from robonav.services.common import (Node, declare_latched_subscriber, guarded_queryable, guarded_subscriber, decode_request, reply_error,
                                      reply_ok, run_service)
 from robonav.services.config import RobonavConfig
@@ -89,11 +90,11 @@ class PlannerNode(Node):
             state = self._joint_state
         if state is None:
             raise ProtocolError(ErrorCode.NO_JOINT_STATE, "no start_positions given and no joint state received yet")
-        by_name = dict(zip(state.names, state.position.tolist()))
-        missing = [n for n in self.robot.joint_names if n not in by_name]
-        if missing:
-            raise ProtocolError(ErrorCode.NO_JOINT_STATE, f"the latest joint state lacks joints {missing}")
-        return np.array([by_name[n] for n in self.robot.joint_names])
+        q = positions_by_name(state.names, state.position, self.robot.joint_names)
+        if q is None:
+            raise ProtocolError(ErrorCode.NO_JOINT_STATE, "the latest joint state lacks joints "
+                                f"{missing_joints(state.names, self.robot.joint_names)}")
+        return q
 
     def _check_map(self) -> None:
         if not self.cfg.planner.require_occupancy:
@@ -143,7 +144,7 @@ class PlannerNode(Node):
             return
         log.info("planned with %s: %d waypoints, %.1f ms, length %.2f rad%s", outcome.planner_id, len(outcome.path),
                  outcome.planning_time_s * 1e3, outcome.path_length_rad,
-                 "; first left the start's padding" if "start_escape" in outcome.details else "")
+                 "; first left the start's padding" if outcome.start_escape is not None else "")
         reply_ok(query, PlanResponse(
             joint_names=names, path=outcome.path, planner_id=outcome.planner_id, goal_index=outcome.goal_index,
             goal_positions=outcome.path[-1],
@@ -153,7 +154,7 @@ class PlannerNode(Node):
             waypoint_count=len(outcome.path), occupancy_stamp=map_stamp,
             max_velocity_scaling_factor=request.max_velocity_scaling_factor,
             max_acceleration_scaling_factor=request.max_acceleration_scaling_factor,
-            request_id=request.request_id, start_escaped="start_escape" in outcome.details,
+            request_id=request.request_id, start_escaped=outcome.start_escape is not None,
         ))
 
     def _joint_goals(self, request: PlanRequest) -> np.ndarray | None:

@@ -11,7 +11,8 @@ from typing import TypeVar
 
 from robonav.pipeline.wire.messages import SceneObjectSpec, SceneObjectState
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.wire.codec import ErrorCode, ProtocolError
+from robonav.pipeline.wire.codec import ProtocolError
+from robonav.pipeline.wire.codes import ErrorCode
 
 T = TypeVar("T")
 

@@ -25,7 +25,8 @@ from robonav.pipeline.wire.messages import (ContactEvent, ContactsRequest, Conta
                                        Setpoint, SimObjectsRequest, SimStatsRequest)
 from robonav.pipeline.sim.motion import MotionScript
 from robonav.pipeline.sim.world import SimWorld
-from robonav.pipeline.wire.codec import ErrorCode, ProtocolError
+from robonav.pipeline.wire.codec import ProtocolError
+from robonav.pipeline.wire.codes import ErrorCode
 from robonav.services.common import Node, decode_request, guarded_queryable, guarded_subscriber, reply_ok, run_service
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire import messages
-from robonav.pipeline.transforms import FloatArray
 from robonav.pipeline.wire.codec import ProtocolError, unpack
 
 CENTER_KEYS = ("center_m", "centre_m", "centroid_m", "position_m", "center", "centroid", "position")

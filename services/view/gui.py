@@ -10,8 +10,8 @@ from typing import Literal
 import numpy as np
 import viser
 
+from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, ExecutorStatus, PlanResponse
-from robonav.pipeline.transforms import FloatArray
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.view.scene import LAYERS, SceneLayers, wxyz_of
 

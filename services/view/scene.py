@@ -23,7 +23,9 @@ from viser.extras import ViserUrdf
 from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.robot.link_geometry import resolve_mesh_path
 from robonav.pipeline.robot.model import RobotModel, resolve_urdf_path
-from robonav.pipeline.transforms import FloatArray, quat_xyzw_from_rotation, rotation_from_quat_xyzw
+from robonav.pipeline.transforms import quat_xyzw_from_rotation, rotation_from_quat_xyzw
+from robonav.pipeline.types import FloatArray
+from robonav.pipeline.wire.joint_order import positions_by_name
 from robonav.services.config import perceived_world_from_camera
 from robonav.services.view.clusters import ClusterBox
 
@@ -262,10 +264,9 @@ class SceneLayers:
 
     def end_effector_pose(self, names: Sequence[str], positions: Sequence[float]) -> FloatArray | None:
         """world_from_end_effector (4, 4) at a joint state, or None if it lacks a planning joint."""
-        by_name = dict(zip(names, positions))
-        if not all(name in by_name for name in self.robot.joint_names):
+        q = positions_by_name(names, positions, self.robot.joint_names)
+        if q is None:
             return None
-        q = np.array([by_name[name] for name in self.robot.joint_names], dtype=np.float64)
         with self._lock:
             return self.robot.frame_pose(q, self.robot.config.end_effector_link)
 

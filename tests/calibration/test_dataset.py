@@ -14,13 +14,14 @@ from robonav.calibration.dataset import (
     Dataset,
     GroundTruth,
     IntrinsicsSpec,
-    PoseSpec,
     ViewSpec,
     load_dataset,
     save_dataset,
 )
-from robonav.calibration.extrinsics import CameraExtrinsics, read_extrinsics, write_extrinsics
+from robonav.pipeline.camera import CameraExtrinsics
+from robonav.services.config import read_extrinsics, write_extrinsics
 from robonav.pipeline.config import ConfigError
+from robonav.pipeline.transforms import PoseSpec
 
 
 def _dataset() -> Dataset:

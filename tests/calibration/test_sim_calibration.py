@@ -18,7 +18,7 @@ import yaml
 from robonav.calibration import cli
 from robonav.calibration.board import BoardSpec, board_corners_m, detect_board
 from robonav.calibration.dataset import IntrinsicsSpec, load_dataset
-from robonav.calibration.extrinsics import read_extrinsics
+from robonav.services.config import read_extrinsics
 from robonav.calibration.hand_eye import invert, transform_error
 from robonav.calibration.sim_collect import ee_from_board_mount
 from robonav.calibration.sim_scene import CalibrationScene, camera_intrinsics

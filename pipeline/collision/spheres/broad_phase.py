@@ -38,7 +38,7 @@ from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.collision.spheres.self_pair_tables import SelfPairTables, build_self_pair_tables
 from robonav.pipeline.collision.spheres.sphere_model import RobotSphereModel, robot_sphere_model
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray
 
 _MAX_GRID_CELLS = 60_000_000
 

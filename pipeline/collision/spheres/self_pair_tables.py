@@ -23,12 +23,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
 from robonav.pipeline.robot.lane_kinematics import REVOLUTE, LinkKinematics
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray, IntArray
 
-IntArray = npt.NDArray[np.int64]
 
 MAX_CHAIN_JOINTS = 3
 """Pairs separated by more joints get no table. Grids cover two joints; a third is swept (a 3-D

@@ -22,14 +22,12 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-import numpy.typing as npt
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray, IntArray
 
-IntArray = npt.NDArray[np.int64]
 
 DEFAULT_TOLERANCE_M = 2.5e-4
 """Added to every radius: covers rounding in qhull/Welzl and FCL's GJK tolerance [m]."""

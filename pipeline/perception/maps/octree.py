@@ -17,7 +17,8 @@ import octomap
 import open3d as o3d
 
 from robonav.pipeline.perception.config import PerceptionConfig
-from robonav.pipeline.perception.filtering import FloatArray, validate_points
+from robonav.pipeline.perception.filtering import validate_points
+from robonav.pipeline.types import FloatArray
 
 # Integer keys are packed into one int64 for fast set operations; 21 bits per axis covers
 # octomap's 16-bit key range plus any inflation radius.

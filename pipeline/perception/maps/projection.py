@@ -30,11 +30,11 @@ from robonav.pipeline.perception.maps import voxel_kernels as kernels
 from robonav.pipeline.perception.clusters import support_layer
 from robonav.pipeline.perception.config import PerceptionConfig
 from robonav.pipeline.perception.depth import remove_depth_edges
-from robonav.pipeline.perception.filtering import BoolArray, FloatArray, validate_transform
+from robonav.pipeline.perception.filtering import validate_transform
 from robonav.pipeline.perception.maps.octree import inflation_offsets
 from robonav.pipeline.perception.self_filter import SelfFilter
+from robonav.pipeline.types import BoolArray, FloatArray, IntArray
 
-IntArray = npt.NDArray[np.int64]
 
 # octomap's default clamping thresholds (probabilities 0.1192 and 0.971).
 _CLAMP_MIN_LOG = math.log(0.1192 / (1 - 0.1192))

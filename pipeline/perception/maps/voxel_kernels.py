@@ -15,9 +15,8 @@ import math
 
 import numba
 import numpy as np
-import numpy.typing as npt
 
-IntArray = npt.NDArray[np.int64]
+
 
 
 @numba.njit(cache=True, nogil=True)

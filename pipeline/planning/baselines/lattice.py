@@ -59,7 +59,7 @@ import numpy as np
 
 from robonav.pipeline.planning.inputs import bounds_violation, joint_vector
 from robonav.pipeline.planning.result import PlanResult, PlanStatus
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import FloatArray, MotionValidFn, StateValidFn
 
 _GOAL = None
 """Heap marker of the goal node (it has no lattice coordinates)."""
@@ -71,8 +71,8 @@ def plan_lattice(
     *,
     lower_rad: FloatArray,
     upper_rad: FloatArray,
-    is_valid: Callable[[FloatArray], bool],
-    motion_valid: Callable[[FloatArray, FloatArray], bool],
+    is_valid: StateValidFn,
+    motion_valid: MotionValidFn,
     resolution_rad: float,
     heuristic_weight: float = 1.0,
     time_limit_s: float = 1.0,

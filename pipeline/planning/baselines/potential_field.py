@@ -57,14 +57,13 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from robonav.pipeline.planning.inputs import bounds_violation, joint_vector
 from robonav.pipeline.planning.result import PlanResult, PlanStatus
-from robonav.pipeline.transforms import FloatArray
+from robonav.pipeline.types import ClearanceFn, FloatArray, MotionValidFn, StateValidFn
 
 _STALL_FRACTION = 0.1
 """Stuck when the net move over `stall_window` steps is below this fraction of their length."""
@@ -126,9 +125,9 @@ def plan_potential_field(
     *,
     lower_rad: FloatArray,
     upper_rad: FloatArray,
-    is_valid: Callable[[FloatArray], bool],
-    motion_valid: Callable[[FloatArray, FloatArray], bool],
-    clearance_m: Callable[[FloatArray], float],
+    is_valid: StateValidFn,
+    motion_valid: MotionValidFn,
+    clearance_m: ClearanceFn,
     rng: np.random.Generator,
     config: PotentialFieldConfig | None = None,
 ) -> PlanResult:

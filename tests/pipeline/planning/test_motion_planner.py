@@ -65,7 +65,7 @@ def test_sphere_first_and_exact_searches_both_give_valid_paths(setup, share: flo
                                                         sphere_first_share=share))
     outcome = planner.plan(PlanProblem(start, goal, allowed_planning_time_s=5.0, seed=4))
     assert outcome.status is PlanStatus.SUCCESS, outcome.detail
-    assert outcome.details["search"] == search
+    assert outcome.search == search
     _assert_valid_path(planner, outcome.path, start)
     np.testing.assert_array_equal(outcome.path[-1], goal)
 
@@ -84,7 +84,7 @@ def test_sphere_first_is_skipped_against_an_occupancy_map(setup) -> None:
     planner = MotionPlanner(robot, world, PlannerConfig(edge_resolution_rad=RESOLUTION_RAD, range_rad=1.0,
                                                         sphere_first_share=1.0))
     outcome = planner.plan(PlanProblem(start, goal, allowed_planning_time_s=5.0, seed=4))
-    assert outcome.status is PlanStatus.SUCCESS and outcome.details["search"] == "exact"
+    assert outcome.status is PlanStatus.SUCCESS and outcome.search == "exact"
     _assert_valid_path(planner, outcome.path, start)
 
 
@@ -93,7 +93,7 @@ def test_sphere_first_is_skipped_when_self_collision_spheres_always_touch(setup)
     assert planner.world.sphere_self_overflag() > 0.9
     own = MotionPlanner(planner.robot, planner.world, dataclasses.replace(planner.config, sphere_first_share=1.0))
     outcome = own.plan(PlanProblem(start, goal, allowed_planning_time_s=5.0, seed=4))
-    assert outcome.status is PlanStatus.SUCCESS and outcome.details["search"] == "exact"
+    assert outcome.status is PlanStatus.SUCCESS and outcome.search == "exact"
 
 
 def test_goal_set_ends_at_a_member(setup) -> None:
@@ -169,7 +169,7 @@ def test_several_attempts_return_the_shortest(setup) -> None:
     outcome = planner.plan(PlanProblem(start, goal, seed=6, simplify=False, num_planning_attempts=4,
                                        allowed_planning_time_s=20.0))
     assert outcome.status is PlanStatus.SUCCESS
-    lengths = outcome.details["attempt_lengths_rad"]
+    lengths = outcome.attempt_lengths_rad
     assert len(lengths) == 4
     assert outcome.path_length_rad == min(lengths)
 

@@ -65,9 +65,11 @@ def test_a_start_inside_the_padding_is_left_through_states_with_bare_links_clear
     path = outcome.path
     np.testing.assert_array_equal(path[0], start)
     np.testing.assert_array_equal(path[-1], goal)
-    escape = outcome.details["start_escape"]
-    np.testing.assert_array_equal(escape["to_rad"], path[1])
-    assert escape["pairs"] and float(np.max(np.abs(path[1] - start))) <= 0.1 + 1e-12
+    escape = outcome.start_escape
+    assert escape is not None
+    np.testing.assert_array_equal(escape.from_rad, start)
+    np.testing.assert_array_equal(escape.to_rad, path[1])
+    assert escape.pairs and float(np.max(np.abs(path[1] - start))) <= 0.1 + 1e-12
     # The way out keeps the bare links clear; from the escape state on, the padded robot is clear.
     assert not any(world.collisions(q, padded=False) for q in interpolate_path(path[:2], RESOLUTION_RAD / 4))
     assert world.path_valid(path[1:], RESOLUTION_RAD)
@@ -80,7 +82,7 @@ def test_escaping_is_reproducible_and_can_be_switched_off(panda, start) -> None:
     goal[0] = 1.0
     first, second = (_planner(panda, world).plan(PlanProblem(start, goal, allowed_planning_time_s=5.0, seed=3))
                      for _ in range(2))
-    np.testing.assert_array_equal(first.details["start_escape"]["to_rad"], second.details["start_escape"]["to_rad"])
+    np.testing.assert_array_equal(first.start_escape.to_rad, second.start_escape.to_rad)
     off = _planner(panda, world, start_escape_rad=0.0).plan(PlanProblem(start, goal, seed=3))
     assert off.status is PlanStatus.START_INVALID and "occupancy" in off.detail
 

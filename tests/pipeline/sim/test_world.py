@@ -17,7 +17,8 @@ from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.world import SimWorld, _create_obstacle, opengl_projection_matrix
-from robonav.pipeline.transforms import FloatArray, look_at_quat_xyzw, transform_points
+from robonav.pipeline.transforms import look_at_quat_xyzw, transform_points
+from robonav.pipeline.types import FloatArray
 
 ROBOT = RobotConfig()
 HOME = np.array(ROBOT.home_position_rad)

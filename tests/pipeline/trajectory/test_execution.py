@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from robonav.pipeline.robot.config import RobotConfig
-from robonav.pipeline.trajectory.execution import (JOINT_STATE_STALE, TRACKING_ERROR, ExecutionStateMachine, Limits,
-                                                   WatchdogConfig)
+from robonav.pipeline.trajectory.config import ExecutorConfig
+from robonav.pipeline.trajectory.execution import ExecutionStateMachine, Limits
+from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.trajectory.timing import time_parameterize
 
 ROBOT = RobotConfig()
@@ -142,7 +143,7 @@ def test_emergency_stop_is_shorter_than_a_normal_stop() -> None:
     assert durations[True] < durations[False]
 
 
-WATCHDOG = WatchdogConfig(joint_state_timeout_s=0.2, max_tracking_error_rad=0.05)
+WATCHDOG = ExecutorConfig(joint_state_timeout_s=0.2, max_tracking_error_rad=0.05)
 
 
 def test_watchdog_stops_on_stale_joint_states_then_reports_error() -> None:
@@ -151,17 +152,17 @@ def test_watchdog_stops_on_stale_joint_states_then_reports_error() -> None:
     machine.start(trajectory, "w", now_s=0.0)
     sample = machine.tick(0.3)
     assert machine.check_watchdog(0.3, sample.position, 0.1, WATCHDOG) is None
-    assert machine.check_watchdog(0.3, sample.position, 0.25, WATCHDOG) == JOINT_STATE_STALE
-    assert machine.state == "stopping" and machine.error_code == JOINT_STATE_STALE
+    assert machine.check_watchdog(0.3, sample.position, 0.25, WATCHDOG) == ErrorCode.JOINT_STATE_STALE
+    assert machine.state == "stopping" and machine.error_code == ErrorCode.JOINT_STATE_STALE
     assert "0.250 s old" in machine.error_message
     after = machine.tick(0.3)
     _assert_continuous(sample, after)
     assert machine.check_watchdog(0.31, None, 9.0, WATCHDOG) is None  # already stopping: no second fault
     _run(machine, 0.301, 5.0)
     status = machine.status(5.0)
-    assert (status.state, status.last_result, status.error_code) == ("error", "aborted", JOINT_STATE_STALE)
+    assert (status.state, status.last_result, status.error_code) == ("error", "aborted", ErrorCode.JOINT_STATE_STALE)
     machine.start(trajectory, "w2", now_s=6.0)  # a new execute clears the error
-    assert machine.state == "executing" and machine.error_code == ""
+    assert machine.state == "executing" and machine.error_code is None
 
 
 def test_watchdog_stops_on_tracking_error() -> None:
@@ -170,6 +171,6 @@ def test_watchdog_stops_on_tracking_error() -> None:
     sample = machine.tick(0.2)
     measured = sample.position.copy()
     measured[3] += 0.06
-    assert machine.check_watchdog(0.2, measured, 0.0, WATCHDOG) == TRACKING_ERROR
+    assert machine.check_watchdog(0.2, measured, 0.0, WATCHDOG) == ErrorCode.TRACKING_ERROR
     assert "joint 3" in machine.error_message
     assert machine.check_watchdog(0.2, None, float("inf"), WATCHDOG) is None

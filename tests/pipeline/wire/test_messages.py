@@ -15,7 +15,8 @@ from robonav.pipeline.wire.messages import (ALL_MESSAGES, ContactsRequest, Conta
                                        SceneResponse, Setpoint, StopRequest, StopResponse, decode_reply)
 from robonav.pipeline.wire.messages import (CameraStats, ContactEvent, DepthImage, ObjectMotionSpec, SimObjectsRequest,
                                        SimObjectsResponse, SimStatsRequest, SimStatsResponse)
-from robonav.pipeline.wire.codec import SCHEMA_VERSION, ErrorCode, Message, ProtocolError
+from robonav.pipeline.wire.codec import SCHEMA_VERSION, Message, ProtocolError
+from robonav.pipeline.wire.codes import ErrorCode
 
 RNG = np.random.default_rng(7)
 NAMES = tuple(f"j{i}" for i in range(7))

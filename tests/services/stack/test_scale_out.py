@@ -25,7 +25,7 @@ import zenoh
 
 from robonav.pipeline.wire.messages import (ErrorReply, PlanRequest, PlanResponse, SceneObjectSpec, SceneRequest,
                                        SceneResponse, decode_reply)
-from robonav.pipeline.wire.codec import ErrorCode
+from robonav.pipeline.wire.codes import ErrorCode
 from robonav.services import health
 from robonav.services.tools import plan as plan_cli
 from robonav.services.client import QueryFailed, RobonavClient

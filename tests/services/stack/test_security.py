@@ -21,7 +21,7 @@ import pytest
 import zenoh
 
 from robonav.pipeline.wire.messages import ErrorReply, ExecutorStatus, StopResponse
-from robonav.pipeline.wire.codec import ErrorCode
+from robonav.pipeline.wire.codes import ErrorCode
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.common import to_zenoh_config
 from robonav.services.config import ZenohConfig, load_config
