@@ -81,7 +81,7 @@ class Detection:
     ids: npt.NDArray[np.int64]
     """(K,) corner indices into `board_corners_m`."""
     corners_px: FloatArray
-    """(K, 2) sub-pixel corner positions, (u, v) with pixel centres at integers."""
+    """(K, 2) sub-pixel corner positions, (u, v) with pixel centers at integers."""
 
 
 def detect_board(spec: BoardSpec, image: npt.NDArray[np.uint8]) -> Detection:

@@ -23,7 +23,7 @@ ground_truth:                             # optional (the sim writes it)
 source: {kind: sim, seed: 0}
 ```
 
-Pixel centres are at integer (u, v); `distortion` is OpenCV's (k1, k2, p1, p2[, k3...]), empty
+Pixel centers are at integer (u, v); `distortion` is OpenCV's (k1, k2, p1, p2[, k3...]), empty
 for none. The world frame is the robot base frame.
 """
 
@@ -48,7 +48,7 @@ Setup = Literal["eye_to_hand", "eye_in_hand"]
 
 @dataclass(frozen=True)
 class IntrinsicsSpec:
-    """Pinhole intrinsics [px] of the images, pixel centres at integers, plus OpenCV distortion."""
+    """Pinhole intrinsics [px] of the images, pixel centers at integers, plus OpenCV distortion."""
 
     width: int
     height: int

@@ -74,7 +74,7 @@ class CollectOptions:
 
 
 def ee_from_board_mount(board: BoardSpec, offset_m: float = 0.12) -> FloatArray:
-    """The board centred on the end effector's z axis, `offset_m` beyond it, printed face outwards."""
+    """The board centered on the end effector's z axis, `offset_m` beyond it, printed face outwards."""
     width, height = board.size_m
     mount = np.eye(4)
     # x_board = y_ee, y_board = x_ee, z_board = -z_ee: the face (seen along +z_board) looks along +z_ee.
@@ -92,7 +92,7 @@ def ee_from_camera_mount() -> FloatArray:
 
 
 def world_from_board_fixed(board: BoardSpec) -> FloatArray:
-    """A board lying face up on the floor in front of the robot, centred at (0.5, 0, 0)."""
+    """A board lying face up on the floor in front of the robot, centered at (0.5, 0, 0)."""
     width, height = board.size_m
     pose = np.eye(4)
     pose[:3, :3] = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
@@ -130,20 +130,20 @@ def _candidates(options: CollectOptions, world_from_camera: FloatArray, intrinsi
             # Within the middle 60 % of the image, so the tilted board stays in view.
             u = rng.uniform(-0.3, 0.3) * intrinsics.width / intrinsics.fx
             v = rng.uniform(-0.3, 0.3) * intrinsics.height / intrinsics.fy
-            centre = world_from_camera @ np.array([u * distance, v * distance, distance, 1.0])
-            facing = _look_rotation(centre[:3] - world_from_camera[:3, 3], world_from_camera[:3, 0])
+            center = world_from_camera @ np.array([u * distance, v * distance, distance, 1.0])
+            facing = _look_rotation(center[:3] - world_from_camera[:3, 3], world_from_camera[:3, 0])
             world_from_board = np.eye(4)
             world_from_board[:3, :3] = _tilted(facing, rng, options.max_tilt_deg)
-            world_from_board[:3, 3] = centre[:3] - world_from_board[:3, :3] @ board_center[:3]
+            world_from_board[:3, 3] = center[:3] - world_from_board[:3, :3] @ board_center[:3]
             out.append((world_from_board, world_from_camera))
         else:
             world_from_board = world_from_board_fixed(options.board)
-            centre = (world_from_board @ board_center)[:3]
+            center = (world_from_board @ board_center)[:3]
             looking_down = np.diag([1.0, -1.0, -1.0])
             direction = _tilted(looking_down, rng, options.max_tilt_deg)[:, 2]
-            eye = centre - direction * rng.uniform(*options.camera_distance_m)
+            eye = center - direction * rng.uniform(*options.camera_distance_m)
             camera = np.eye(4)
-            camera[:3, :3] = _tilted(_look_rotation(centre - eye, world_from_board[:3, 0]), rng, 5.0)
+            camera[:3, :3] = _tilted(_look_rotation(center - eye, world_from_board[:3, 0]), rng, 5.0)
             camera[:3, 3] = eye
             out.append((world_from_board, camera))
     return out

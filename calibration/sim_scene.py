@@ -7,7 +7,7 @@ times larger and averaged down, as a sensor integrates light over each pixel, pl
 Gaussian sensor noise.
 
 Measured here: TinyRenderer's principal point is half a pixel right of and half a pixel
-above the one its projection matrix states, i.e. (W/2, H/2 - 1) for the centred matrix of
+above the one its projection matrix states, i.e. (W/2, H/2 - 1) for the centered matrix of
 `computeProjectionMatrixFOV` (a board rendered at a known pose shows a constant
 (+0.5, -0.5) px offset against OpenCV's projection). `render_rgb` cancels it, so the images
 follow the requested intrinsics exactly.
@@ -42,7 +42,7 @@ _NEAR_M, _FAR_M = 0.03, 6.0
 
 
 def camera_intrinsics(camera: CameraConfig, width: int, height: int) -> IntrinsicsSpec:
-    """Square-pixel, centred intrinsics of `camera`'s vertical field of view at width x height."""
+    """Square-pixel, centered intrinsics of `camera`'s vertical field of view at width x height."""
     fy = 0.5 * height / math.tan(math.radians(camera.vertical_fov_deg) / 2.0)
     return IntrinsicsSpec(width, height, fy, fy, (width - 1) / 2.0, (height - 1) / 2.0)
 
@@ -51,7 +51,7 @@ def projection_matrix(intrinsics: IntrinsicsSpec, supersample: int) -> FloatArra
     """(4, 4) OpenGL projection whose TinyRenderer render, averaged over supersample² blocks, has `intrinsics`."""
     s = supersample
     w, h = intrinsics.width * s, intrinsics.height * s
-    # Pixel i of the averaged image is the mean of render pixels s*i .. s*i+s-1, centred at s*i + (s-1)/2.
+    # Pixel i of the averaged image is the mean of render pixels s*i .. s*i+s-1, centered at s*i + (s-1)/2.
     cx = s * intrinsics.cx + (s - 1) / 2.0 - TINY_RENDERER_PIXEL_OFFSET[0]
     cy = s * intrinsics.cy + (s - 1) / 2.0 - TINY_RENDERER_PIXEL_OFFSET[1]
     fx, fy = s * intrinsics.fx, s * intrinsics.fy

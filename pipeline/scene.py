@@ -24,7 +24,7 @@ class SceneObject:
 
     Shapes follow the `mbm-primitives/1` conventions: a box has full side lengths `size_m`;
     a cylinder or capsule has `radius_m` and full `length_m` along its local z axis,
-    centred at `position_m`; a sphere has `radius_m`. A mesh has `vertices_m` in its own
+    centered at `position_m`; a sphere has `radius_m`. A mesh has `vertices_m` in its own
     (object) frame and `triangles` indexing them; `position_m`/`quat_xyzw` place that frame.
 
     Equality and hashing compare every field, mesh arrays by value (the arrays are stored
@@ -34,7 +34,7 @@ class SceneObject:
     name: str
     type: ObjectType
     position_m: tuple[float, float, float]
-    """Centre of the primitive in the world frame [m]."""
+    """Center of the primitive in the world frame [m]."""
     quat_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
     """Orientation in the world frame, scalar last."""
     size_m: tuple[float, float, float] | None = None
@@ -108,7 +108,7 @@ class SceneObject:
 
     @property
     def local_bounds_m(self) -> tuple[FloatArray, FloatArray]:
-        """Centre (3,) and half extents (3,) of the object's axis-aligned box in its own frame [m].
+        """Center (3,) and half extents (3,) of the object's axis-aligned box in its own frame [m].
 
         A capsule's box includes its caps; a mesh's box is that of its vertices.
         """

@@ -145,7 +145,7 @@ class CollisionWorld:
         Args:
             octomap_binary: What `octomap.OcTree.writeBinary()` returns (header and data).
             resolution_m: Leaf size [m]; must match the `res` line of the header.
-            seen_voxels_m: (N, 3) centres of the voxels the sensors saw, when the octree is
+            seen_voxels_m: (N, 3) centers of the voxels the sensors saw, when the octree is
                 those grown by an inflation (`Occupancy.occupied_centers_m`) [m]; None: unknown.
         """
         self._revision += 1
@@ -180,7 +180,7 @@ class CollisionWorld:
 
     @property
     def seen_voxels_m(self) -> FloatArray | None:
-        """(N, 3) centres of the map's voxels before inflation, side `octree_resolution_m` [m];
+        """(N, 3) centers of the map's voxels before inflation, side `octree_resolution_m` [m];
         None when the map came without them (or there is no map)."""
         return self._seen_voxels_m
 
@@ -198,7 +198,7 @@ class CollisionWorld:
             self._broad_phase.clear_occupancy()
 
     def set_objects(self, objects: Sequence[SceneObject]) -> None:
-        """Replace the primitive obstacles (poses in the world frame; capsule length between cap centres)."""
+        """Replace the primitive obstacles (poses in the world frame; capsule length between cap centers)."""
         self._revision += 1
         names = [o.name for o in objects]
         for i, name in enumerate(names):
@@ -346,14 +346,14 @@ class CollisionWorld:
             return False
         return bool(self._check(q, first_only=True))
 
-    def touches_cubes(self, q: FloatArray, centres_m: FloatArray, side_m: float) -> bool:
+    def touches_cubes(self, q: FloatArray, centers_m: FloatArray, side_m: float) -> bool:
         """True when a padded link at `q` touches one of the axis-aligned cubes of edge `side_m`
-        centred at `centres_m` (N, 3), e.g. voxels. Only the robot, none of the world's objects.
+        centered at `centers_m` (N, 3), e.g. voxels. Only the robot, none of the world's objects.
 
         Cheaper than `set_objects` + `in_collision` for a few voxels checked once: no
         SceneObjects and no broad phase rebuilt, one shared box shape, an AABB test first."""
         centers = self._pose(self._robot.validate_q(q))
-        cubes = np.asarray(centres_m, dtype=np.float64).reshape(-1, 3)
+        cubes = np.asarray(centers_m, dtype=np.float64).reshape(-1, 3)
         gap = np.maximum(np.abs(centers[:, None, :] - cubes[None]) - 0.5 * side_m, 0.0)
         near = np.einsum("skj,skj->sk", gap, gap) <= self._padded_radii_sq
         cube = fcl.Box(side_m, side_m, side_m)
@@ -438,7 +438,7 @@ class CollisionWorld:
         return best
 
     def _pose_attached(self, q: FloatArray) -> list[tuple[_Attached, FloatArray, FloatArray]]:
-        """Poses every attached object for the FK of the last `_pose(q)`; (object, world AABB centre (3,), half extents (3,))."""
+        """Poses every attached object for the FK of the last `_pose(q)`; (object, world AABB center (3,), half extents (3,))."""
         out = []
         for attached in self._attached.values():
             s = attached.shape_index
@@ -591,7 +591,7 @@ class CollisionWorld:
         return arr
 
     def _pose(self, q: FloatArray) -> FloatArray:
-        """Runs FK for `q`; FCL objects are then posed lazily. Returns shape centres (S, 3), world frame."""
+        """Runs FK for `q`; FCL objects are then posed lazily. Returns shape centers (S, 3), world frame."""
         # The broad phase's compiled kinematics (read from the same Pinocchio model) cost less
         # than half of a Pinocchio round trip, and every FCL check starts here.
         poses = (self._robot.link_pose_stack(q) if self._broad_phase is None
@@ -660,7 +660,7 @@ class CollisionWorld:
         """Pose the robot at `q` and say which pairs FCL must test.
 
         Returns (S, K) shape-object and (S,) shape-octree masks, a mask over `_self_pairs` (the
-        object mask is None without objects) and the shapes' centres (S, 3), or None for them
+        object mask is None without objects) and the shapes' centers (S, 3), or None for them
         when the sphere model answered: then only pairs whose spheres touch are tested (the
         spheres contain the padded hulls, so no other pair can collide), which saves most FCL
         calls and the culling here; otherwise bounding spheres against the objects' boxes cull."""
@@ -682,7 +682,7 @@ class CollisionWorld:
 
 
 def _occupied_leaf_centers(octomap_binary: bytes, resolution_m: float) -> FloatArray:
-    """(N, 3) centres [m] of the occupied leaf-size voxels of an octomap binary (pruned nodes expanded)."""
+    """(N, 3) centers [m] of the occupied leaf-size voxels of an octomap binary (pruned nodes expanded)."""
     import octomap  # only worlds with an occupancy map need it
 
     tree = octomap.OcTree(resolution_m)
@@ -759,7 +759,7 @@ def _object_geometry(obj: SceneObject, padding_m: float = 0.0) -> fcl.CollisionG
 
 
 def _world_aabb(obj: SceneObject, world_from_object: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """World-frame axis-aligned box (centre (3,), half extents (3,)) [m] around `obj` posed at `world_from_object`."""
+    """World-frame axis-aligned box (center (3,), half extents (3,)) [m] around `obj` posed at `world_from_object`."""
     local_center, local_half = obj.local_bounds_m
     rotation = world_from_object[:3, :3]
     return rotation @ local_center + world_from_object[:3, 3], np.abs(rotation) @ local_half

@@ -9,7 +9,7 @@ Three figures, on the voxel grid of the map:
   boundary puts noisy returns on either side of it.
 - spurious voxels: occupied voxels whose cube does not touch any true obstacle grown by
   one voxel (the slack noise is allowed).
-- robot voxels: occupied voxels whose centre lies inside the robot's unpadded links.
+- robot voxels: occupied voxels whose center lies inside the robot's unpadded links.
 """
 
 from __future__ import annotations
@@ -44,16 +44,16 @@ class MapAccuracy:
     """Occupied voxels whose cube does not touch a true obstacle grown by one voxel."""
     spurious_fraction: float
     on_robot: int
-    """Occupied voxels with their centre inside an unpadded robot link."""
+    """Occupied voxels with their center inside an unpadded robot link."""
 
 
-def map_accuracy(occupied_centres_m: npt.ArrayLike, resolution_m: float, *, visible_surface_m: npt.ArrayLike,
+def map_accuracy(occupied_centers_m: npt.ArrayLike, resolution_m: float, *, visible_surface_m: npt.ArrayLike,
                  objects: Sequence[SceneObject], robot_hulls: Mapping[str, FloatArray],
                  world_from_link: Mapping[str, npt.ArrayLike], sample_spacing_m: float = 0.004) -> MapAccuracy:
     """Compare a map with the truth.
 
     Args:
-        occupied_centres_m: (N, 3) occupied voxel centres, world frame [m].
+        occupied_centers_m: (N, 3) occupied voxel centers, world frame [m].
         resolution_m: Voxel edge [m].
         visible_surface_m: (M, 3) points of true obstacles a noise-free camera sees [m].
         objects: The true obstacles (primitives), world frame.
@@ -61,32 +61,32 @@ def map_accuracy(occupied_centres_m: npt.ArrayLike, resolution_m: float, *, visi
         world_from_link: Link poses when the map was built.
         sample_spacing_m: Spacing of the surface samples that stand for the obstacles [m].
     """
-    centres = np.asarray(occupied_centres_m, dtype=np.float64).reshape(-1, 3)
-    occupied_keys = _keys(centres, resolution_m)
+    centers = np.asarray(occupied_centers_m, dtype=np.float64).reshape(-1, 3)
+    occupied_keys = _keys(centers, resolution_m)
     surface_keys = np.unique(_keys(np.asarray(visible_surface_m, dtype=np.float64).reshape(-1, 3), resolution_m), axis=0)
     occupied_set = {tuple(k) for k in occupied_keys.tolist()}
     covered = np.array([tuple(k) in occupied_set for k in surface_keys.tolist()], dtype=bool)
     near = np.array([any(tuple(k + n) in occupied_set for n in _NEIGHBOURS) for k in surface_keys], dtype=bool)
 
-    # A voxel touches an obstacle grown by one voxel when its centre lies within half a voxel
+    # A voxel touches an obstacle grown by one voxel when its center lies within half a voxel
     # diagonal plus one voxel of it: inside, or that close to its (densely sampled) surface.
     reach = resolution_m * (0.5 * np.sqrt(3.0) + 1.0) + sample_spacing_m
-    truth = _inside_any(centres, objects)
+    truth = _inside_any(centers, objects)
     if objects and not truth.all():
         samples = sample_object_surfaces(objects, spacing_m=sample_spacing_m, rng=np.random.default_rng(0))
-        distance, _ = cKDTree(samples).query(centres[~truth], distance_upper_bound=reach)
+        distance, _ = cKDTree(samples).query(centers[~truth], distance_upper_bound=reach)
         truth[~truth] = distance <= reach
     spurious = int(np.count_nonzero(~truth))
     on_robot = 0
-    if centres.shape[0]:
-        on_robot = int(np.count_nonzero(~SelfFilter(robot_hulls, 0.0).outside_mask(centres, world_from_link)))
+    if centers.shape[0]:
+        on_robot = int(np.count_nonzero(~SelfFilter(robot_hulls, 0.0).outside_mask(centers, world_from_link)))
     n_surface = int(surface_keys.shape[0])
     return MapAccuracy(
         surface_voxels=n_surface,
         surface_covered=float(covered.mean()) if n_surface else 1.0,
         surface_covered_within_one_voxel=float(near.mean()) if n_surface else 1.0,
-        occupied=int(centres.shape[0]), spurious=spurious,
-        spurious_fraction=spurious / centres.shape[0] if centres.shape[0] else 0.0,
+        occupied=int(centers.shape[0]), spurious=spurious,
+        spurious_fraction=spurious / centers.shape[0] if centers.shape[0] else 0.0,
         on_robot=on_robot)
 
 
@@ -108,6 +108,6 @@ def _inside_any(points_m: FloatArray, objects: Sequence[SceneObject]) -> npt.NDA
             z = np.clip(local[:, 2], -obj.length_m / 2, obj.length_m / 2)
             inside |= np.linalg.norm(local - np.column_stack([np.zeros_like(z), np.zeros_like(z), z]), axis=1) <= obj.radius_m
         else:
-            centre, half = obj.local_bounds_m
-            inside |= np.all(np.abs(local - centre) <= half, axis=1)
+            center, half = obj.local_bounds_m
+            inside |= np.all(np.abs(local - center) <= half, axis=1)
     return inside

@@ -107,7 +107,7 @@ class MeshCollisionChecker:
         return sorted({(self._shape_links[i], self._shape_links[j]) for i, j in self._self_pairs})
 
     def set_objects(self, objects: Sequence[SceneObject]) -> None:
-        """Replace the obstacles (poses in the world frame; capsule length between cap centres).
+        """Replace the obstacles (poses in the world frame; capsule length between cap centers).
 
         Raises:
             ValueError: two objects share a name.
@@ -222,7 +222,7 @@ class MeshCollisionChecker:
 
 
 def _link_shape_geometry(shape: LinkShape) -> tuple[fcl.CollisionGeometry, FloatArray, float]:
-    """FCL geometry of a link shape in its SHAPE frame, with a bounding sphere (centre (3,), radius) there [m]."""
+    """FCL geometry of a link shape in its SHAPE frame, with a bounding sphere (center (3,), radius) there [m]."""
     if shape.kind == "mesh":
         if shape.vertices is None or shape.triangles is None:
             raise ValueError(f"link '{shape.link}': mesh shape carries no triangles")

@@ -1,4 +1,4 @@
-"""Obstacle clusters from occupied voxels: voxel connected components, or DBSCAN on centres.
+"""Obstacle clusters from occupied voxels: voxel connected components, or DBSCAN on centers.
 
 Connected components (scipy.ndimage.label, 26-connectivity) is the default: it works on the
 grid the map already has, so it costs one labelling pass. DBSCAN (open3d) is kept to compare
@@ -25,7 +25,7 @@ class ClusterSet:
     """K clusters; arrays are indexed by cluster."""
 
     centroids_m: FloatArray
-    """(K, 3) mean voxel centre [m]."""
+    """(K, 3) mean voxel center [m]."""
     bbox_min_m: FloatArray
     """(K, 3) lower corner over the voxels' faces [m]."""
     bbox_max_m: FloatArray
@@ -44,7 +44,7 @@ class ClusterSet:
 
 def cluster_voxels(
     ijk: IntArray,
-    centres_m: FloatArray,
+    centers_m: FloatArray,
     resolution_m: float,
     *,
     labels: npt.ArrayLike | None = None,
@@ -56,7 +56,7 @@ def cluster_voxels(
 
     Args:
         ijk: (N, 3) integer voxel coordinates (any common origin).
-        centres_m: (N, 3) the same voxels' centres [m].
+        centers_m: (N, 3) the same voxels' centers [m].
         resolution_m: Voxel edge [m].
         labels: Optional (N,) integer label per voxel (-1 for none).
         method: "components" (26-connected voxels) or "dbscan" (open3d, eps = 1.01 x the
@@ -68,7 +68,7 @@ def cluster_voxels(
             it, and the objects are grouped without it. 0 turns this off.
     """
     ijk = np.asarray(ijk, dtype=np.int64)
-    centres = np.asarray(centres_m, dtype=np.float64)
+    centers = np.asarray(centers_m, dtype=np.float64)
     n = ijk.shape[0]
     voxel_labels = np.full(n, -1, dtype=np.int64) if labels is None else np.asarray(labels, dtype=np.int64)
     if n == 0:
@@ -89,7 +89,7 @@ def cluster_voxels(
             component, _ = ndi.label(grid, structure=np.ones((3, 3, 3), dtype=bool))
             ids = component[local[:, 0], local[:, 1], local[:, 2]].astype(np.int64) - 1
         else:
-            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(centres[part]))
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(centers[part]))
             ids = np.asarray(cloud.cluster_dbscan(eps=1.01 * np.sqrt(3.0) * resolution_m, min_points=1), dtype=np.int64)
         raw[part] = ids + offset
         offset += int(ids.max()) + 1
@@ -100,7 +100,7 @@ def cluster_voxels(
     members = remap[raw]
     k = kept.size
     inside = members >= 0
-    m, c = members[inside], centres[inside]
+    m, c = members[inside], centers[inside]
     counts = np.bincount(m, minlength=k)
     centroids = np.column_stack([np.bincount(m, weights=c[:, a], minlength=k) for a in range(3)]) / counts[:, None]
     half = 0.5 * resolution_m

@@ -21,7 +21,7 @@ class PerceptionConfig:
     self_filter_padding_m: float = 0.04
     """Robot link shapes grow by this much before removing the robot's own points [m]."""
     self_clear_padding_m: float = 0.02
-    """Occupied voxels whose centre lies inside the robot's links grown by this much are freed
+    """Occupied voxels whose center lies inside the robot's links grown by this much are freed
     every frame (the robot is there now; no ray can clear what its body hides) [m]. Kept below
     the planner's robot padding + inflation: a planned motion never comes this close to a
     mapped obstacle, so passing one does not erase it (as a larger radius would, leaving a
@@ -57,7 +57,7 @@ class PerceptionConfig:
     """Frames arriving faster than this are dropped (latest-only)."""
     clustering: Literal["components", "dbscan"] = "components"
     """How occupied voxels are grouped into `perception/clusters`: 26-connected components on
-    the voxel grid, or open3d's DBSCAN on voxel centres."""
+    the voxel grid, or open3d's DBSCAN on voxel centers."""
     cluster_min_voxels: int = 3
     """Clusters with fewer voxels are not published."""
     clusters_rate_hz: float = 5.0
@@ -83,7 +83,7 @@ class PerceptionConfig:
     """Projection: a voxel is seen through only if the depth behind it exceeds its own depth by
     this much: about half a voxel, plus the depth noise of the camera (a real camera needs more) [m]."""
     clearing_max_footprint_px: int = 6
-    """Projection: at most this many pixels around a voxel's centre are checked for a return
+    """Projection: at most this many pixels around a voxel's center are checked for a return
     in front of it (its footprint is half a voxel wide, up to this)."""
 
     def __post_init__(self) -> None:

@@ -1,7 +1,7 @@
 """Depth images to points: pinhole back-projection and OpenGL depth-buffer linearisation.
 
 All points are in the camera's optical frame (z forward along the view axis, x right,
-y down in the image), in metres. Pixel (u, v) = (column, row) has its centre at integer
+y down in the image), in metres. Pixel (u, v) = (column, row) has its center at integer
 coordinates, matching `CameraIntrinsics.cx/cy`.
 """
 

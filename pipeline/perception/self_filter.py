@@ -27,8 +27,8 @@ class _LinkHull:
     """(P, 3) outward unit normals of the hull's distinct face planes, link frame."""
     offsets_m: FloatArray
     """(P,) plane offsets including padding: a point x is inside iff normals @ x <= offsets."""
-    centre_link_m: FloatArray
-    """(3,) centre of the bounding sphere, link frame [m]."""
+    center_link_m: FloatArray
+    """(3,) center of the bounding sphere, link frame [m]."""
     radius_m: float
     """Bounding-sphere radius including padding [m]."""
 
@@ -87,9 +87,9 @@ class SelfFilter:
             if name not in world_from_link:
                 continue
             pose = np.asarray(world_from_link[name], dtype=np.float64)
-            centre = pose[:3, :3] @ hull.centre_link_m + pose[:3, 3]
-            lows.append(centre - hull.radius_m)
-            highs.append(centre + hull.radius_m)
+            center = pose[:3, :3] @ hull.center_link_m + pose[:3, 3]
+            lows.append(center - hull.radius_m)
+            highs.append(center + hull.radius_m)
         if not lows:
             return np.zeros(3), np.zeros(3) - 1.0  # empty box
         return np.min(lows, axis=0), np.max(highs, axis=0)
@@ -114,8 +114,8 @@ class SelfFilter:
             pose = validate_transform(world_from_link[name], f"world_from_link[{name!r}]")
             rotation, translation = pose[:3, :3], pose[:3, 3]
             # Cheap sphere test first: most of the scene is far from any given link.
-            centre_world = rotation @ hull.centre_link_m + translation
-            delta = pts - centre_world
+            center_world = rotation @ hull.center_link_m + translation
+            delta = pts - center_world
             near = np.flatnonzero(np.einsum("ij,ij->i", delta, delta) <= hull.radius_m * hull.radius_m)
             if near.size == 0:
                 continue
@@ -156,12 +156,12 @@ def _padded_hull(name: str, vertices_link: FloatArray, padding_m: float) -> _Lin
     # Coplanar faces are split into several triangles; keep each plane once.
     planes = np.unique(np.round(np.column_stack([normals, offsets]), 9), axis=0)
     lo, hi = vertices_link.min(axis=0), vertices_link.max(axis=0)
-    centre = 0.5 * (lo + hi)
-    radius = float(np.linalg.norm(vertices_link - centre, axis=1).max()) + padding_m
+    center = 0.5 * (lo + hi)
+    radius = float(np.linalg.norm(vertices_link - center, axis=1).max()) + padding_m
     return _LinkHull(
         normals_link=planes[:, :3].copy(),
         offsets_m=planes[:, 3] + padding_m,
-        centre_link_m=centre,
+        center_link_m=center,
         radius_m=radius,
     )
 

@@ -234,7 +234,7 @@ def forward_joints_lanes(
     States are lanes of the innermost axis, so each joint's arithmetic is one loop over the
     lanes that the compiler turns into SIMD instructions (VAMP's idea: several states per
     instruction instead of one); the sphere broad phase places its spheres straight from these
-    joint frames, with the link placements folded into the sphere centres.
+    joint frames, with the link placements folded into the sphere centers.
 
     Args:
         n: Lanes in use (<= frames.shape[2]).

@@ -31,9 +31,9 @@ def perceivable_objects(objects: tuple[SceneObject, ...] | list[SceneObject], fl
     """
     boxes = []
     for obj in objects:
-        centre, half = obj.local_bounds_m
+        center, half = obj.local_bounds_m
         pose = obj.world_from_object
-        corners = (centre + _CORNER_SIGNS * half) @ pose[:3, :3].T + pose[:3, 3]
+        corners = (center + _CORNER_SIGNS * half) @ pose[:3, :3].T + pose[:3, 3]
         low, high = corners.min(axis=0), corners.max(axis=0)
         low[2] = min(low[2], floor_z_m)
         size = np.maximum(high - low, 1e-4)
@@ -126,7 +126,7 @@ class Intruder:
     start: SceneObject
     """The box where it waits (world frame)."""
     target_m: tuple[float, float, float]
-    """Where its centre comes to rest: where `link` passes at `target_time_s` [m]."""
+    """Where its center comes to rest: where `link` passes at `target_time_s` [m]."""
     target_time_s: float
     """When the arm's link would be at the target, from the trajectory's start [s]."""
     lead_s: float

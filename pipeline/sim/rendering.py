@@ -57,8 +57,8 @@ def render_depth(client: int, cam: CameraConfig) -> DepthFrame:
 def opengl_projection_matrix(intrinsics: CameraIntrinsics, near_m: float, far_m: float) -> npt.NDArray[np.float64]:
     """(4, 4) OpenGL projection matrix that reproduces pinhole `intrinsics`.
 
-    Pixel centres sit at integer (u, v) with v growing downwards, as in `CameraIntrinsics`;
-    for centred intrinsics this equals `computeProjectionMatrixFOV(vertical fov, w/h, near, far)`.
+    Pixel centers sit at integer (u, v) with v growing downwards, as in `CameraIntrinsics`;
+    for centered intrinsics this equals `computeProjectionMatrixFOV(vertical fov, w/h, near, far)`.
     """
     w, h = intrinsics.width, intrinsics.height
     return np.array([

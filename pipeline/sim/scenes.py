@@ -44,7 +44,7 @@ class ClutterConfig:
     """Procedural clutter on a table in front of the robot; sizes in metres, world frame."""
 
     table_center_m: tuple[float, float, float] = (0.55, 0.0, 0.1)
-    """Centre of the table box [m]."""
+    """Center of the table box [m]."""
     table_size_m: tuple[float, float, float] = (0.5, 1.2, 0.2)
     """Full side lengths of the table box [m]; its top is the support plane."""
     layouts: tuple[str, ...] = LAYOUTS
@@ -229,9 +229,9 @@ def scene_bounds_m(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     """World-frame axis-aligned bounds (min (3,), max (3,)) of every object's bounding box [m]."""
     corners = []
     for obj in scene.objects:
-        centre, half = obj.local_bounds_m
+        center, half = obj.local_bounds_m
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
-        local = centre + signs * half
+        local = center + signs * half
         pose = obj.world_from_object
         corners.append(local @ pose[:3, :3].T + pose[:3, 3])
     stacked = np.concatenate(corners) if corners else np.zeros((1, 3))

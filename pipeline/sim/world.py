@@ -414,7 +414,7 @@ def _create_obstacle(obj: SceneObject, rgba: tuple[float, float, float, float], 
         vis = p.createVisualShape(p.GEOM_MESH, vertices=vertices, indices=indices, rgbaColor=rgba, physicsClientId=cid)
     else:
         # Collision shapes call the axial length `height`, visual shapes `length`. For a capsule
-        # both are the cylindrical section between the cap centres (as in FCL).
+        # both are the cylindrical section between the cap centers (as in FCL).
         geom = p.GEOM_CYLINDER if obj.type == "cylinder" else p.GEOM_CAPSULE
         col = p.createCollisionShape(geom, radius=obj.radius_m, height=obj.length_m, physicsClientId=cid)
         vis = p.createVisualShape(geom, radius=obj.radius_m, length=obj.length_m, rgbaColor=rgba, physicsClientId=cid)

@@ -3,9 +3,9 @@
 The executor stops (and replans) when the guard says the remaining path is blocked, e.g. an
 obstacle slid into it. Rebuilding FCL's octree from every map costs 0.1-1.7 s on a loaded
 2-core machine, far too slow to react, so the check has two stages. First the robot's covering
-spheres (`robot_sphere_model`, which contain the link hulls) against new voxel centres in a
+spheres (`robot_sphere_model`, which contain the link hulls) against new voxel centers in a
 KD-tree: a state is suspect when a sphere comes within robot padding + inflation + half a voxel
-diagonal of a voxel centre. Spheres are fatter than the links, so a suspect state is then
+diagonal of a voxel center. Spheres are fatter than the links, so a suspect state is then
 confirmed with FCL: the padded link hulls against the suspect voxels as boxes grown by the
 inflation (a superset of the planner's inflated voxels), which is at least as cautious as the
 planner's hull-vs-inflated-octree check and not more. Only voxels new since `start` count: the
@@ -26,7 +26,7 @@ from robonav.pipeline.types import FloatArray
 
 
 class PathGuard:
-    """Remaining-path checks against a stream of occupancy maps (voxel centres)."""
+    """Remaining-path checks against a stream of occupancy maps (voxel centers)."""
 
     def __init__(self, robot: RobotModel, *, padding_m: float, inflation_m: float, edge_resolution_rad: float) -> None:
         self._spheres = robot_sphere_model(robot)
@@ -37,7 +37,7 @@ class PathGuard:
         self._resolution_rad = edge_resolution_rad
         self._baseline = np.zeros(0, dtype=np.int64)
         self._tree: cKDTree | None = None
-        self._new_centres = np.zeros((0, 3))
+        self._new_centers = np.zeros((0, 3))
         self._voxel_m = 0.0
 
     def warm_up(self, q: npt.ArrayLike) -> None:
@@ -51,26 +51,26 @@ class PathGuard:
         self.blocked_state(np.array([state, state]), state)
         self.start(None)
 
-    def start(self, centres_m: npt.ArrayLike | None, voxel_m: float = 0.0) -> None:
+    def start(self, centers_m: npt.ArrayLike | None, voxel_m: float = 0.0) -> None:
         """A path starts executing, planned on (about) this map: only voxels new since then count.
 
         Args:
-            centres_m: (N, 3) occupied voxel centres of the map the path was planned on [m]; None: none.
+            centers_m: (N, 3) occupied voxel centers of the map the path was planned on [m]; None: none.
             voxel_m: Voxel size of that map [m].
         """
-        self._baseline = np.zeros(0, dtype=np.int64) if centres_m is None or voxel_m <= 0 else \
-            np.unique(_voxel_keys(np.asarray(centres_m, dtype=np.float64), voxel_m))
+        self._baseline = np.zeros(0, dtype=np.int64) if centers_m is None or voxel_m <= 0 else \
+            np.unique(_voxel_keys(np.asarray(centers_m, dtype=np.float64), voxel_m))
         self._tree = None
 
-    def update_map(self, centres_m: npt.ArrayLike, voxel_m: float) -> int:
+    def update_map(self, centers_m: npt.ArrayLike, voxel_m: float) -> int:
         """Take a new map; returns how many of its voxels are new since `start`."""
-        centres = np.asarray(centres_m, dtype=np.float64).reshape(-1, 3)
+        centers = np.asarray(centers_m, dtype=np.float64).reshape(-1, 3)
         # The baseline is sorted (np.unique): a binary search per key is ~10x faster than np.isin.
-        keys = _voxel_keys(centres, voxel_m)
+        keys = _voxel_keys(centers, voxel_m)
         at = np.minimum(np.searchsorted(self._baseline, keys), max(len(self._baseline) - 1, 0))
         new = np.ones(len(keys), dtype=bool) if len(self._baseline) == 0 else self._baseline[at] != keys
-        self._new_centres = centres[new]
-        self._tree = cKDTree(self._new_centres) if np.any(new) else None
+        self._new_centers = centers[new]
+        self._tree = cKDTree(self._new_centers) if np.any(new) else None
         self._voxel_m = voxel_m
         return int(new.sum())
 
@@ -111,10 +111,10 @@ class PathGuard:
             return None
         states = self.states_ahead(path, q_now)
         poses = self._kinematics.link_poses_batch(states)[:, self._spheres.link_index]  # (M, S, 4, 4)
-        centres = np.einsum("msij,sj->msi", poses[..., :3, :3], self._spheres.centers_link_m) + poses[..., :3, 3]
-        # A voxel is a cube around its centre: half its diagonal more covers every point of it.
+        centers = np.einsum("msij,sj->msi", poses[..., :3, :3], self._spheres.centers_link_m) + poses[..., :3, 3]
+        # A voxel is a cube around its center: half its diagonal more covers every point of it.
         reach = self._spheres.radii_m + self._margin_m + 0.5 * np.sqrt(3.0) * self._voxel_m
-        distances, voxels = self._tree.query(centres.reshape(-1, 3), distance_upper_bound=float(reach.max()))
+        distances, voxels = self._tree.query(centers.reshape(-1, 3), distance_upper_bound=float(reach.max()))
         gap = distances.reshape(len(states), -1) - reach[None]
         near = gap < 0.0
         suspects = np.nonzero(np.any(near, axis=1))[0]
@@ -128,16 +128,16 @@ class PathGuard:
         # work stays small however many voxels are new.
         side = self._voxel_m + 2.0 * self._inflation_m
         for m in suspects:
-            balls = self._tree.query_ball_point(centres[m][near[m]], r=reach[near[m]])
+            balls = self._tree.query_ball_point(centers[m][near[m]], r=reach[near[m]])
             indices = np.unique(np.fromiter((i for ball in balls for i in ball), dtype=np.int64))
-            if self._confirm.touches_cubes(states[m], self._new_centres[indices], side):
+            if self._confirm.touches_cubes(states[m], self._new_centers[indices], side):
                 return states[m]
         return None
 
 
-def _voxel_keys(centres_m: FloatArray, voxel_m: float) -> npt.NDArray[np.int64]:
+def _voxel_keys(centers_m: FloatArray, voxel_m: float) -> npt.NDArray[np.int64]:
     """One int64 per voxel (21 bits per axis: +-10 km at 1 cm)."""
-    ijk = np.floor(centres_m / voxel_m).astype(np.int64) + (1 << 20)
+    ijk = np.floor(centers_m / voxel_m).astype(np.int64) + (1 << 20)
     return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
 
 
@@ -146,16 +146,16 @@ SETTLED_MAX_NEW_VOXELS = 2
 adds 0-2 per frame with the arm still; an object still moving adds its leading faces."""
 
 
-def new_voxel_count(previous_centres_m: npt.ArrayLike, centres_m: npt.ArrayLike, voxel_m: float) -> int:
-    """How many voxels of `centres_m` (N, 3) are not in `previous_centres_m` (M, 3), both maps
+def new_voxel_count(previous_centers_m: npt.ArrayLike, centers_m: npt.ArrayLike, voxel_m: float) -> int:
+    """How many voxels of `centers_m` (N, 3) are not in `previous_centers_m` (M, 3), both maps
     of `voxel_m` voxels: 0 (up to sensor noise) when nothing moved in between."""
     if voxel_m <= 0:
         raise ValueError(f"voxel_m must be > 0, got {voxel_m}")
-    before = _voxel_keys(np.asarray(previous_centres_m, dtype=np.float64).reshape(-1, 3), voxel_m)
-    now = _voxel_keys(np.asarray(centres_m, dtype=np.float64).reshape(-1, 3), voxel_m)
+    before = _voxel_keys(np.asarray(previous_centers_m, dtype=np.float64).reshape(-1, 3), voxel_m)
+    now = _voxel_keys(np.asarray(centers_m, dtype=np.float64).reshape(-1, 3), voxel_m)
     return int(np.count_nonzero(~np.isin(now, before)))
 
 
-def map_settled(previous_centres_m: npt.ArrayLike, centres_m: npt.ArrayLike, voxel_m: float) -> bool:
+def map_settled(previous_centers_m: npt.ArrayLike, centers_m: npt.ArrayLike, voxel_m: float) -> bool:
     """Whether a map adds at most `SETTLED_MAX_NEW_VOXELS` to the one before it."""
-    return new_voxel_count(previous_centres_m, centres_m, voxel_m) <= SETTLED_MAX_NEW_VOXELS
+    return new_voxel_count(previous_centers_m, centers_m, voxel_m) <= SETTLED_MAX_NEW_VOXELS

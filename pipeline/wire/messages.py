@@ -122,7 +122,7 @@ class Occupancy(Message):
     octomap_binary: bytes
     """OctoMap `.bt` file contents (header + data) of the inflated occupied voxels."""
     occupied_centers_m: np.ndarray = array_field("<f4", (None, 3))
-    """(N, 3) centres of occupied voxels before inflation [m]."""
+    """(N, 3) centers of occupied voxels before inflation [m]."""
     seq: int = 0
     frame_id: str = "world"
 
@@ -136,7 +136,7 @@ class Clusters(Message):
     ids: np.ndarray = array_field("<i4", (None,))
     """(K,) cluster ids, unique within one message (not tracked across messages)."""
     centroids_m: np.ndarray = array_field("<f4", (None, 3))
-    """(K, 3) mean of each cluster's voxel centres [m]."""
+    """(K, 3) mean of each cluster's voxel centers [m]."""
     bbox_min_m: np.ndarray = array_field("<f4", (None, 3))
     """(K, 3) lower corner of each cluster's axis-aligned box (voxel faces) [m]."""
     bbox_max_m: np.ndarray = array_field("<f4", (None, 3))
@@ -480,7 +480,7 @@ class SceneObjectSpec(Message):
     """One collision object in a `planner/scene` request; travels nested, without `v`.
 
     Shapes follow `SceneObject`: box `size_m` (full sides), sphere `radius_m`, cylinder and
-    capsule `radius_m` + `length_m` along local z (a capsule's between its cap centres), mesh
+    capsule `radius_m` + `length_m` along local z (a capsule's between its cap centers), mesh
     `vertices_m` + `triangles` in the object frame.
     """
 

@@ -128,7 +128,7 @@ def publish_depth_frames(endpoint: str, config_path: str | None, rate_hz: float,
                          box_since: Any = None) -> None:  # noqa: ANN401
     """Process body: render the default scene's first camera once, publish it at `rate_hz` until `stop`.
 
-    With `box_m`, a second frame with a 10 cm box centred there is rendered too and published
+    With `box_m`, a second frame with a 10 cm box centered there is rendered too and published
     instead while `box_on` is set; `box_since` gets the wall time of its first publication.
     """
     from robonav.pipeline.wire.messages import DepthImage
@@ -177,7 +177,7 @@ DROP_SCALING = 0.3
 
 
 def drop_target_m(cfg: RobonavConfig, robot: RobotModel) -> tuple[float, float, float]:
-    """Where the hand passes on the swing at least 1.5 s after it starts (the box's centre)."""
+    """Where the hand passes on the swing at least 1.5 s after it starts (the box's center)."""
     trajectory = time_parameterize(np.array([SWING_FROM, SWING_TO]), max_velocity=robot.velocity_limits,
                                    max_acceleration=robot.acceleration_limits, max_jerk=robot.jerk_limits,
                                    velocity_scaling=DROP_SCALING, acceleration_scaling=DROP_SCALING,

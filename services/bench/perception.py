@@ -32,10 +32,9 @@ import yaml
 from robonav.pipeline.wire.messages import JointState, Occupancy, PointCloud
 from robonav.pipeline.evaluation.map_accuracy import map_accuracy
 from robonav.pipeline.perception.clusters import cluster_voxels
-from robonav.pipeline.perception.cloud_pipeline import process_cloud_with_clearing
-from robonav.pipeline.perception.depth import depth_from_points, points_from_depth
-from robonav.pipeline.perception.maps.octree import OccupancyMap
-from robonav.pipeline.perception.maps.projection import ProjectionOccupancyMap
+from robonav.pipeline.perception.depth import points_from_depth
+from robonav.pipeline.perception.maps.factory import make_occupancy_map
+from robonav.pipeline.perception.maps.protocol import CameraFrame
 from robonav.pipeline.perception.self_filter import perception_filters
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.sim.noise import apply_depth_noise
@@ -107,11 +106,11 @@ def accuracy_run(cfg: RobonavConfig, frames_per_pose: int, seed: int) -> dict[st
             clean = np.where(seen, frame.depth_m, np.inf).astype(np.float32)
             pose = frame.world_from_camera
             visible = points_from_depth(clean, frame.intrinsics).astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
-            grid = ProjectionOccupancyMap(cfg.perception)
+            grid = make_occupancy_map(dataclasses.replace(cfg.perception, clearing="projection"))
             for _ in range(frames_per_pose):
                 depth, _ = apply_depth_noise(frame.depth_m, frame.segmentation, frame.intrinsics, noise, rng)
-                grid.integrate_depth(depth, frame.intrinsics, pose, self_filter=self_filter, world_from_link=links,
-                                     clear_filter=clear_filter)
+                grid.integrate(CameraFrame(frame.intrinsics, pose, links, depth_m=depth), self_filter=self_filter,
+                               clear_filter=clear_filter)
             found = map_accuracy(grid.occupied_centers_m(), grid.resolution_m, visible_surface_m=visible,
                                  objects=objects, robot_hulls=robot.link_hull_vertices, world_from_link=links)
             results.append({"q_rad": np.round(q, 3).tolist(), **dataclasses.asdict(found)})
@@ -132,54 +131,35 @@ def core_run(cfg: RobonavConfig, frames: list, count: int, clearing: str) -> dic
     pose = camera.world_from_camera
     stages: dict[str, list[float]] = {}
     totals: list[float] = []
-    if clearing == "projection":
-        proj = ProjectionOccupancyMap(pcfg)
-    else:
-        ray = OccupancyMap(pcfg)
+    occupancy = make_occupancy_map(pcfg)
     for n in range(count):
         points, q, intrinsics = frames[n % len(frames)]
         t0 = time.perf_counter()
-        links = robot.link_poses(q)
-        if clearing == "projection":
-            t1 = time.perf_counter()
-            depth, _ = depth_from_points(points, intrinsics)
-            lap = {"to_depth": (time.perf_counter() - t1) * 1e3}
-            update = proj.integrate_depth(depth, intrinsics, pose, self_filter=self_filter, world_from_link=links,
-                                          clear_filter=clear_filter)
-            lap.update({k: v for k, v in update.stage_ms.items() if k != "total"})
-            t1 = time.perf_counter()
-            binary, centres = proj.planning_binary(), proj.occupied_centers_m()
-            lap["publish_encode"] = (time.perf_counter() - t1) * 1e3
-        else:
-            pts, clear_only, stats = process_cloud_with_clearing(points, world_from_camera=pose, config=pcfg,
-                                                                 self_filter=self_filter, world_from_link=links)
-            lap = {k: v for k, v in stats.stage_ms.items() if k != "total"}
-            t1 = time.perf_counter()
-            ray.insert(pts, pose[:3, 3], clear_only_world=clear_only)
-            ray.free_voxels_where(lambda c: ~clear_filter.outside_mask(c, links))
-            lap["raycast"] = (time.perf_counter() - t1) * 1e3
-            t1 = time.perf_counter()
-            binary, centres = ray.planning_binary(), ray.occupied_centers_m()
-            lap["publish_encode"] = (time.perf_counter() - t1) * 1e3
+        frame = CameraFrame(intrinsics, pose, robot.link_poses(q), points_camera_m=points)
+        lap = {k: v for k, v in occupancy.integrate(frame, self_filter=self_filter, clear_filter=clear_filter).items()
+               if k != "total"}
+        t1 = time.perf_counter()
+        binary, centers = occupancy.planning_binary(), occupancy.occupied_centers_m()
+        lap["publish_encode"] = (time.perf_counter() - t1) * 1e3
         Occupancy(stamp=0.0, resolution_m=pcfg.resolution_m, octomap_binary=binary,
-                  occupied_centers_m=centres.astype(np.float32)).to_wire()
+                  occupied_centers_m=centers.astype(np.float32)).to_wire()
         totals.append((time.perf_counter() - t0) * 1e3)
         for key, value in lap.items():
             stages.setdefault(key, []).append(value)
     result: dict[str, Any] = {"frames": count, "total_ms": _stats(totals[1:] or totals),
                               "stages": {k: _stats(v[1:] or v) for k, v in stages.items()}}
-    if clearing == "projection":
-        occupied = proj.occupied_indices()
+    if clearing == "projection":  # the service's default map: how long clustering it takes
+        voxels = occupancy.occupied_voxels()
         cluster_ms: dict[str, Any] = {}
         for method in ("components", "dbscan"):
             times = []
             for _ in range(5):
                 t0 = time.perf_counter()
-                found = cluster_voxels(proj.ijk(occupied), proj.centres_m(occupied), pcfg.resolution_m, method=method)
+                found = cluster_voxels(voxels.ijk, voxels.centers_m, pcfg.resolution_m, method=method)
                 times.append((time.perf_counter() - t0) * 1e3)
             cluster_ms[method] = {**_stats(times), "clusters": found.count}
         result["clustering_ms"] = cluster_ms
-        result["occupied_voxels"] = int(occupied.size)
+        result["occupied_voxels"] = int(voxels.centers_m.shape[0])
     return result
 
 

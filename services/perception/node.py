@@ -28,11 +28,9 @@ from robonav.pipeline.wire.messages import (
     PerceptionStatusResponse,
     PointCloud,
 )
-from robonav.pipeline.perception.cloud_pipeline import process_cloud_with_clearing
 from robonav.pipeline.perception.clusters import cluster_voxels
-from robonav.pipeline.perception.depth import depth_from_points
-from robonav.pipeline.perception.maps.octree import OccupancyMap
-from robonav.pipeline.perception.maps.projection import ProjectionOccupancyMap
+from robonav.pipeline.perception.maps.factory import make_occupancy_map
+from robonav.pipeline.perception.maps.protocol import CameraFrame, FrameRejected
 from robonav.pipeline.perception.self_filter import perception_filters
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name
@@ -108,8 +106,7 @@ class PerceptionNode(Node):
         self.robot = RobotModel.from_config(cfg.robot)
         self.self_filter, self.clear_filter = perception_filters(
             self.robot.link_hull_vertices, self.robot.static_link_names, cfg.perception, cfg.robot.padding_m)
-        self.map: ProjectionOccupancyMap | OccupancyMap = (
-            ProjectionOccupancyMap(cfg.perception) if cfg.perception.clearing == "projection" else OccupancyMap(cfg.perception))
+        self.map = make_occupancy_map(cfg.perception)
         self.history = JointHistory(self.robot.joint_names)
         self.cameras = {cam.camera_id: cam for cam in cfg.cameras}
         self.world_from_camera = {cam.camera_id: perceived_world_from_camera(cam) for cam in cfg.cameras}
@@ -201,45 +198,25 @@ class PerceptionNode(Node):
             self.drops.add("no_joint_state", f"no joint state within {MAX_JOINT_STATE_GAP_S} s of the cloud stamp")
             return False
         self._last_stamp[cloud.camera_id] = cloud.stamp
-        world_from_camera = self.world_from_camera[cloud.camera_id]
-        world_from_link = self.robot.link_poses(q)
+        if cloud.label_names:
+            self._label_names.update(cloud.label_names)
+        if isinstance(cloud, DepthImage):
+            depth, points, labels = cloud.depth_m, None, cloud.labels
+        else:
+            depth, points, labels = None, cloud.points, None
+        frame = CameraFrame(intrinsics=cloud.intrinsics or camera.intrinsics,
+                            world_from_camera=self.world_from_camera[cloud.camera_id],
+                            world_from_link=self.robot.link_poses(q), depth_m=depth, points_camera_m=points,
+                            labels=labels)
         with self._map_lock:
             if self._taken_before_clear(cloud):  # cleared while this frame was being prepared
                 return False
-            if isinstance(self.map, ProjectionOccupancyMap):
-                intrinsics = cloud.intrinsics or camera.intrinsics
-                t0 = time.perf_counter()
-                if isinstance(cloud, DepthImage):
-                    depth, labels = cloud.depth_m, cloud.labels
-                else:
-                    (depth, _), labels = depth_from_points(cloud.points, intrinsics), None
-                if cloud.label_names:
-                    self._label_names.update(cloud.label_names)
-                depth_ms = (time.perf_counter() - t0) * 1e3
-                if not np.isfinite(depth).any():
-                    # A frame without a single return says the sensor failed, not that the
-                    # world is empty: it must not clear the map.
-                    self.drops.add("empty", f"camera {cloud.camera_id!r} sent a frame without returns")
-                    return False
-                update = self.map.integrate_depth(depth, intrinsics, world_from_camera, self_filter=self.self_filter,
-                                                  world_from_link=world_from_link, labels=labels,
-                                                  clear_filter=self.clear_filter)
-                self.last_stage_ms = {"to_depth": depth_ms, **update.stage_ms}
-            elif isinstance(cloud, DepthImage):
-                self.drops.add("unsupported", "depth images need perception.clearing: projection")
+            try:
+                self.last_stage_ms = self.map.integrate(frame, self_filter=self.self_filter,
+                                                        clear_filter=self.clear_filter)
+            except FrameRejected as exc:
+                self.drops.add(exc.reason, f"camera {cloud.camera_id!r}: {exc}")
                 return False
-            else:
-                # Points dropped by the crop or the self-filter still clear the space their rays
-                # crossed, so a moved arm or object leaves no ghost where nothing is seen behind it.
-                points_world, clear_only_world, stats = process_cloud_with_clearing(
-                    cloud.points, world_from_camera=world_from_camera, config=self.cfg.perception,
-                    self_filter=self.self_filter, world_from_link=world_from_link,
-                )
-                t0 = time.perf_counter()
-                self.map.insert(points_world, world_from_camera[:3, 3], clear_only_world=clear_only_world)
-                # Voxels inside the robot are traces of the arm that its body now hides from every ray.
-                self.map.free_voxels_where(lambda centres: ~self.clear_filter.outside_mask(centres, world_from_link))
-                self.last_stage_ms = {**stats.stage_ms, "raycast": (time.perf_counter() - t0) * 1e3}
         self._newest_stamp = max(self._newest_stamp, cloud.stamp)
         self.frames += 1
         return True
@@ -248,16 +225,16 @@ class PerceptionNode(Node):
         t0 = time.perf_counter()
         with self._map_lock:
             binary = self.map.planning_binary()
-            centres = self.map.occupied_centers_m().astype(np.float32)
+            centers = self.map.occupied_centers_m().astype(np.float32)
             clusters = self._clusters() if self._clusters_due() else None
         self.published += 1
         self._pub.put(Occupancy(stamp=self._newest_stamp, resolution_m=self.cfg.perception.resolution_m,
-                                octomap_binary=binary, occupied_centers_m=centres, seq=self.published).to_wire())
+                                octomap_binary=binary, occupied_centers_m=centers, seq=self.published).to_wire())
         if clusters is not None:
             self._clusters_pub.put(clusters.to_wire())
         self.last_stage_ms["publish"] = (time.perf_counter() - t0) * 1e3
         if self.published == 1:
-            log.info("first occupancy map: %d voxels", centres.shape[0])
+            log.info("first occupancy map: %d voxels", centers.shape[0])
 
     def _clusters_due(self) -> bool:
         now = time.monotonic()
@@ -267,15 +244,9 @@ class PerceptionNode(Node):
         return True
 
     def _clusters(self) -> Clusters:
-        res = self.cfg.perception.resolution_m
-        if isinstance(self.map, ProjectionOccupancyMap):
-            occupied = self.map.occupied_indices()
-            ijk, centres, labels = self.map.ijk(occupied), self.map.centres_m(occupied), self.map.labels_of(occupied)
-        else:
-            centres = self.map.occupied_centers_m()
-            ijk, labels = np.floor(centres / res).astype(np.int64), None
-        found = cluster_voxels(ijk, centres, res, labels=labels, method=self.cfg.perception.clustering,
-                               min_voxels=self.cfg.perception.cluster_min_voxels)
+        voxels = self.map.occupied_voxels()
+        found = cluster_voxels(voxels.ijk, voxels.centers_m, self.cfg.perception.resolution_m, labels=voxels.labels,
+                               method=self.cfg.perception.clustering, min_voxels=self.cfg.perception.cluster_min_voxels)
         names = tuple(self._label_names.get(int(i), "") for i in found.label_ids)
         return Clusters(stamp=self._newest_stamp, ids=np.arange(found.count, dtype=np.int32),
                         centroids_m=found.centroids_m.astype(np.float32), bbox_min_m=found.bbox_min_m.astype(np.float32),

@@ -2,7 +2,7 @@
 
 A payload is decoded with the `Clusters` message when this version has one. Anything else (an
 older or newer perception, another producer) goes to a tolerant reader that picks boxes out of
-the forms a cluster message is likely to use — per-cluster maps with a centre and size or with
+the forms a cluster message is likely to use — per-cluster maps with a center and size or with
 min/max corners, or parallel arrays — and skips what it cannot read. A wrong guess costs a
 missing box, never a dead view.
 """
@@ -19,7 +19,7 @@ from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire import messages
 from robonav.pipeline.wire.codec import ProtocolError, unpack
 
-CENTER_KEYS = ("center_m", "centre_m", "centroid_m", "position_m", "center", "centroid", "position")
+CENTER_KEYS = ("center_m", "center_m", "centroid_m", "position_m", "center", "centroid", "position")
 SIZE_KEYS = ("size_m", "extent_m", "extents_m", "dimensions_m", "size", "extent", "extents", "dimensions")
 MIN_KEYS = ("min_m", "aabb_min_m", "bbox_min_m", "min_corner_m", "lower_m", "min")
 MAX_KEYS = ("max_m", "aabb_max_m", "bbox_max_m", "max_corner_m", "upper_m", "max")
@@ -35,7 +35,7 @@ class ClusterBox:
 
     label: str
     center_m: FloatArray
-    """(3,) box centre [m]."""
+    """(3,) box center [m]."""
     size_m: FloatArray
     """(3,) full side lengths along the box axes [m]."""
     quat_xyzw: FloatArray

@@ -205,7 +205,7 @@ class SceneLayers:
         return cluster_colors(points_m, boxes, colors) if by_cluster and boxes else colors
 
     def show_voxels(self, centers_m: npt.NDArray[np.floating], resolution_m: float) -> bool:
-        """Draw occupied voxel centres (N, 3) as boxes of side `resolution_m`; False if unchanged."""
+        """Draw occupied voxel centers (N, 3) as boxes of side `resolution_m`; False if unchanged."""
         centers = np.asarray(centers_m, dtype=np.float32)
         with self._lock:
             if self._voxel_centers is not None and np.array_equal(self._voxel_centers, centers):

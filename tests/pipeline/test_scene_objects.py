@@ -61,7 +61,7 @@ def test_mesh_object_collides_and_frees(world: CollisionWorld, panda: RobotModel
     world.set_objects([_cube_mesh("cube", hand + np.array([0.3, 0.0, 0.0]), 0.1)])
     assert not world.in_collision(HOME)
     assert 0.1 < world.clearance_m(HOME) < 0.3
-    # The mesh's frame is offset from its vertices' centre: the bounds must follow the vertices.
+    # The mesh's frame is offset from its vertices' center: the bounds must follow the vertices.
     offset = SceneObject("cube", "mesh", tuple(hand - np.array([1.0, 0.0, 0.0])),
                          vertices_m=CUBE_VERTICES * 0.1 + np.array([1.05, 0.0, 0.0]), triangles=CUBE_TRIANGLES)
     world.set_objects([offset])

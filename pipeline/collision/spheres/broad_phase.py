@@ -177,7 +177,7 @@ class SphereBroadPhase:
         """Replace the occupancy with cubes of side `voxel_size_m` at `centers_m` (N, 3), world frame [m].
 
         Builds a Euclidean distance field on a grid aligned with the voxels, covering them plus a
-        margin. A lookup at point p in cell c returns edt(c) - |p - centre(c)| - half voxel
+        margin. A lookup at point p in cell c returns edt(c) - |p - center(c)| - half voxel
         diagonal, a lower bound on the distance from p to any occupied cube; outside the grid the
         distance to the occupied cubes' bounding box is used.
         """
@@ -224,7 +224,7 @@ class SphereBroadPhase:
         Args:
             name: Key for `remove_attached`.
             link: A collision link name.
-            centers_link_m: (A, 3) centres in the LINK frame [m].
+            centers_link_m: (A, 3) centers in the LINK frame [m].
             radii_m: (A,) radii [m].
             touch_links: Links the object may touch (ignored for it).
         """
@@ -235,7 +235,7 @@ class SphereBroadPhase:
         centers = np.asarray(centers_link_m, dtype=np.float64).reshape(-1, 3)
         radii = np.asarray(radii_m, dtype=np.float64).reshape(-1)
         if radii.shape[0] != centers.shape[0] or np.any(radii < 0):
-            raise ValueError(f"need one radius >= 0 per centre, got {radii.shape[0]} radii for {centers.shape[0]} centres")
+            raise ValueError(f"need one radius >= 0 per center, got {radii.shape[0]} radii for {centers.shape[0]} centers")
         self._attached[name] = (links.index(link), centers, radii, tuple(touch_links))
         self._rebuild_attached()
 

@@ -65,7 +65,7 @@ def touches_voxels(x: float, y: float, z: float, radius: float, occupied, origin
     its bounding box overlaps.
 
     The distance field alone is a lower bound loose by up to 1.7 voxels (the offset from the
-    cell centre plus half the cube's diagonal); this second step, taken only where the field
+    cell center plus half the cube's diagonal); this second step, taken only where the field
     says a sphere may touch, keeps spheres from flagging states FCL clears: of 1085 random
     Panda states beside a slab of 2 cm voxels (self-collision aside), 39 were flagged but
     free with the field alone, 21 with this step."""

@@ -8,7 +8,7 @@ sphere-sphere distances are loops over lanes with no branch inside, which the co
 into SIMD instructions (what VAMP does by hand in C++). Culling stays per link and pair, taken
 when any lane needs the finer test; a lane's answer is the same whatever the other lanes hold.
 
-Sphere centres are stored in their joint's frame (the link placement folded in), so the link
+Sphere centers are stored in their joint's frame (the link placement folded in), so the link
 frames are never formed. The voxel and attached-sphere tests stay per lane: they are rare
 (occupancy maps, grasped objects) and branchy.
 

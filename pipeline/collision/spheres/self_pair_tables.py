@@ -51,7 +51,7 @@ class SelfPairTables:
         low: (P, 2) angle of grid index 0 [rad].
         step: (P, 2) grid spacing [rad].
         count: (P, 2) grid points per axis.
-        gap_m: lower bounds on the smallest sphere gap (centre distance minus both radii) for
+        gap_m: lower bounds on the smallest sphere gap (center distance minus both radii) for
             states nearest to each grid point, row-major over the two axes [m].
     """
 
@@ -72,7 +72,7 @@ def build_self_pair_tables(kin: LinkKinematics, lower_rad: FloatArray, upper_rad
     Args:
         kin: The robot's compiled kinematics.
         lower_rad, upper_rad: (dof,) joint limits; the grids span them.
-        centers_joint: (S, 3) sphere centres in their link's joint frame [m].
+        centers_joint: (S, 3) sphere centers in their link's joint frame [m].
         radii_m: (S,) sphere radii (the unpadded self-collision ones) [m].
         link_start: (L + 1,) spheres of link l are link_start[l]:link_start[l + 1].
     """
@@ -129,7 +129,7 @@ def _grid_gaps(kin: LinkKinematics, chain: list[int], grids: list[FloatArray], a
         axis = kin.joint_axis[swept]
         height = b @ axis
         circle_radii = np.linalg.norm(b - height[:, None] * axis, axis=1)
-        # Centres on the axis (where the joint's rotation leaves them), one frame up.
+        # Centers on the axis (where the joint's rotation leaves them), one frame up.
         above = kin.parent_from_joint_rotation[swept]
         centers = _points_in_upper_frame(kin, chain[:2], grids,
                                          (height[:, None] * axis) @ above.T + kin.parent_from_joint_translation_m[swept])

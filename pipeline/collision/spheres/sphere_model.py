@@ -6,7 +6,7 @@ approximate it (VAMP's Panda spheres do not: FORMAT.md of the MBM benchmark find
 paths touching obstacles).
 
 Algorithm (deterministic): the hull's volume is sampled uniformly, k-means splits the samples
-into k clusters, and the hull is cut into the k Voronoi cells of the cluster centres. Each cell
+into k clusters, and the hull is cut into the k Voronoi cells of the cluster centers. Each cell
 is a convex polytope whose vertices are computed exactly (qhull half-space intersection), and
 its sphere is the smallest ball around those vertices (Welzl). A ball containing a convex
 polytope's vertices contains the polytope, and the cells partition the hull, so the cover is
@@ -48,7 +48,7 @@ class SphereCover:
     """Spheres covering one convex point set.
 
     Attributes:
-        centers_m: (S, 3) sphere centres, in the frame of the input points [m].
+        centers_m: (S, 3) sphere centers, in the frame of the input points [m].
         radii_m: (S,) radii, tolerance included [m].
         hull_volume_m3: Volume of the convex hull covered [m^3].
         union_volume_m3: Monte-Carlo estimate of the volume of the union of the spheres [m^3].
@@ -69,7 +69,7 @@ class RobotSphereModel:
 
     Attributes:
         link_names: Collision links, `RobotModel.collision_link_names` order.
-        centers_link_m: (S, 3) sphere centres, each in ITS link's frame [m].
+        centers_link_m: (S, 3) sphere centers, each in ITS link's frame [m].
         radii_m: (S,) radii [m] (unpadded: they cover the hulls themselves).
         link_index: (S,) index into `link_names` of each sphere's link; spheres of one link are
             contiguous and links appear in order.
@@ -119,7 +119,7 @@ def cover_convex_points(
         tolerance_m: Added to every radius [m]; dense samples are checked against the radii without it.
 
     Returns:
-        The cover, centres in the frame of `points_m`.
+        The cover, centers in the frame of `points_m`.
 
     Raises:
         ValueError: bad arguments, or the coverage check failed (a bug, not an input problem).
@@ -171,13 +171,13 @@ def robot_sphere_model(
 
 
 def box_points(size_m: tuple[float, float, float] | FloatArray) -> FloatArray:
-    """(8, 3) corners of a box with full side lengths `size_m`, centred at the origin [m]."""
+    """(8, 3) corners of a box with full side lengths `size_m`, centered at the origin [m]."""
     half = 0.5 * np.asarray(size_m, dtype=np.float64)
     return np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64) * half
 
 
 def cylinder_points(radius_m: float, length_m: float, sides: int = 24) -> FloatArray:
-    """(2 * sides, 3) prism corners around a cylinder along z (apothem = radius), centred at the origin [m]."""
+    """(2 * sides, 3) prism corners around a cylinder along z (apothem = radius), centered at the origin [m]."""
     angles = np.arange(sides) * (2 * math.pi / sides)
     rim = radius_m / math.cos(math.pi / sides)
     ring = np.column_stack([rim * np.cos(angles), rim * np.sin(angles)])
@@ -242,7 +242,7 @@ def _exact_radii(equations: FloatArray, centers: FloatArray, radii: FloatArray) 
 
     The power (Laguerre) cells of the balls partition the hull, and a point of the hull that lies
     in any ball lies in the ball of its power cell. So growing each radius to the farthest vertex
-    of (power cell ∩ hull) from the centre covers the hull exactly, and changes nothing (up to
+    of (power cell ∩ hull) from the center covers the hull exactly, and changes nothing (up to
     rounding) where the sampled greedy cover was already complete.
     """
     out = radii.copy()
@@ -266,7 +266,7 @@ def _exact_radii(equations: FloatArray, centers: FloatArray, radii: FloatArray) 
 
 
 def _interior_point(halfspaces: FloatArray, guess: FloatArray) -> FloatArray | None:
-    """A point strictly inside {x: A x + b <= 0}: `guess` if clearly inside, else the Chebyshev centre."""
+    """A point strictly inside {x: A x + b <= 0}: `guess` if clearly inside, else the Chebyshev center."""
     normals, offsets = halfspaces[:, :3], halfspaces[:, 3]
     norms = np.linalg.norm(normals, axis=1)
     if np.all((normals @ guess + offsets) / norms < -1e-6):

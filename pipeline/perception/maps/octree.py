@@ -1,15 +1,15 @@
 """Probabilistic occupancy map (an octomap OcTree) and its inflated planning snapshot.
 
 Voxels are addressed by integer grid keys `k = floor(p / resolution)` per axis, the same
-grid octomap uses (octomap's own keys add a constant 2**15 offset); a voxel's centre is
+grid octomap uses (octomap's own keys add a constant 2**15 offset); a voxel's center is
 `(k + 0.5) * resolution`. All coordinates are in the world frame, in metres.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import math
+import time
+from collections.abc import Callable
 
 import numpy as np
 import numpy.typing as npt
@@ -18,7 +18,10 @@ import open3d as o3d
 
 from robonav.pipeline.perception.config import PerceptionConfig
 from robonav.pipeline.perception.filtering import validate_points
-from robonav.pipeline.types import FloatArray
+from robonav.pipeline.perception.cloud_pipeline import process_cloud_with_clearing
+from robonav.pipeline.perception.maps.protocol import CameraFrame, FrameRejected, OccupiedVoxels
+from robonav.pipeline.perception.self_filter import SelfFilter
+from robonav.pipeline.types import BoolArray, FloatArray
 
 # Integer keys are packed into one int64 for fast set operations; 21 bits per axis covers
 # octomap's 16-bit key range plus any inflation radius.
@@ -57,6 +60,27 @@ class OccupancyMap:
         self._tree.clear()
         self._occupied_cache = None
 
+    def integrate(self, frame: CameraFrame, *, self_filter: SelfFilter, clear_filter: SelfFilter) -> dict[str, float]:
+        """`OccupancyBackend.integrate` for point clouds: the cloud pipeline, then `insert` with
+        ray casting, then voxels on the robot freed.
+
+        Points dropped by the crop or the self filter still clear the space their rays crossed,
+        so a moved arm or object leaves no ghost where nothing is seen behind it.
+
+        Raises:
+            FrameRejected: "unsupported" for a depth image (use `perception.clearing: projection`).
+        """
+        if frame.points_camera_m is None:
+            raise FrameRejected("unsupported", "depth images need perception.clearing: projection")
+        points_world, clear_only_world, stats = process_cloud_with_clearing(
+            frame.points_camera_m, world_from_camera=frame.world_from_camera, config=self._config,
+            self_filter=self_filter, world_from_link=frame.world_from_link)
+        t0 = time.perf_counter()
+        self.insert(points_world, np.asarray(frame.world_from_camera)[:3, 3], clear_only_world=clear_only_world)
+        # Voxels inside the robot are traces of the arm that its body now hides from every ray.
+        self.free_where(lambda centers: ~clear_filter.outside_mask(centers, frame.world_from_link))
+        return {**stats.stage_ms, "raycast": (time.perf_counter() - t0) * 1e3}
+
     def insert(
         self,
         points_world: npt.ArrayLike,
@@ -87,14 +111,14 @@ class OccupancyMap:
         if clear_only_world is not None:
             crossed = self._crossed_occupied_keys(validate_points(clear_only_world, "clear_only_world"), origin)
             # This scan's hits win over its misses, as within one octomap insertPointCloud.
-            missed = np.setdiff1d(crossed, _pack_keys(_centres_to_keys(pts, self.resolution_m)))
+            missed = np.setdiff1d(crossed, _pack_keys(_centers_to_keys(pts, self.resolution_m)))
             if missed.size:
                 # Misses before hits, as octomap orders them within one scan.
-                self._tree.updateNodes(_keys_to_centres(missed, self.resolution_m), False)
+                self._tree.updateNodes(_keys_to_centers(missed, self.resolution_m), False)
                 self._occupied_cache = None
         if pts.shape[0] == 0:
             return
-        # discretize=True casts one ray per endpoint voxel (to its centre) instead of one per
+        # discretize=True casts one ray per endpoint voxel (to its center) instead of one per
         # point: ~35% faster on downsampled depth frames, and the map cannot resolve the
         # difference. lazy_eval stays off: it skips pruning, which doubles the leaf count.
         self._tree.insertPointCloud(pts, origin, maxrange=self._config.max_range_m, discretize=True)
@@ -106,7 +130,7 @@ class OccupancyMap:
         if not self._config.fill_below_surfaces:
             return
         res = self.resolution_m
-        keys = _centres_to_keys(points_world, res)
+        keys = _centers_to_keys(points_world, res)
         floor_z = math.floor(self._config.workspace_min_m[2] / res)
         columns, inverse = np.unique(keys[:, :2], axis=0, return_inverse=True)
         top_z = np.full(len(columns), np.iinfo(np.int64).min)
@@ -119,29 +143,29 @@ class OccupancyMap:
         starts = np.repeat(np.cumsum(heights) - heights, heights)
         depth = np.arange(heights.sum()) - starts
         filled = np.column_stack([columns[column_of], top_z[column_of] - 1 - depth])
-        self._tree.updateNodes(_keys_to_centres(_pack_keys(filled), res), True)
+        self._tree.updateNodes(_keys_to_centers(_pack_keys(filled), res), True)
 
-    def free_voxels_where(self, inside: Callable[[FloatArray], npt.NDArray[np.bool_]]) -> int:
-        """Mark free every occupied voxel whose centre `inside` flags; returns how many.
+    def free_where(self, inside: Callable[[FloatArray], BoolArray]) -> int:
+        """Mark free every occupied voxel whose center `inside` flags; returns how many.
 
         For space known to be taken by something else: the robot's own links (a voxel there
         is a trace of the arm that its body now hides from the camera, so no ray can clear
         it), or objects the planner already models.
 
         Args:
-            inside: maps (N, 3) voxel centres in the world frame [m] to an (N,) bool mask.
+            inside: maps (N, 3) voxel centers in the world frame [m] to an (N,) bool mask.
         """
-        centres = self.occupied_centers_m()
-        if centres.shape[0] == 0:
+        centers = self.occupied_centers_m()
+        if centers.shape[0] == 0:
             return 0
-        mask = np.asarray(inside(centres), dtype=bool)
-        if mask.shape != (centres.shape[0],):
-            raise ValueError(f"inside() must return one bool per centre, got shape {mask.shape}")
-        hidden = centres[mask]
+        mask = np.asarray(inside(centers), dtype=bool)
+        if mask.shape != (centers.shape[0],):
+            raise ValueError(f"inside() must return one bool per center, got shape {mask.shape}")
+        hidden = centers[mask]
         if hidden.shape[0]:
             # One clamped-minimum update frees a voxel at once, however saturated it was.
-            for centre in hidden:
-                self._tree.updateNode(centre, float(self._tree.getClampingThresMinLog()) - 10.0)
+            for center in hidden:
+                self._tree.updateNode(center, float(self._tree.getClampingThresMinLog()) - 10.0)
             self._occupied_cache = None
         return int(hidden.shape[0])
 
@@ -152,16 +176,16 @@ class OccupancyMap:
         segments against the occupied voxels' cubes with open3d's Embree ray caster instead;
         only occupied voxels can change the planning map, which keeps the work small.
         """
-        centres = self.occupied_centers_m()
-        if centres.shape[0] == 0 or points_world.shape[0] == 0:
+        centers = self.occupied_centers_m()
+        if centers.shape[0] == 0 or points_world.shape[0] == 0:
             return np.empty(0, dtype=np.int64)
         segments = points_world - origin
         length_m = np.linalg.norm(segments, axis=1)
         # Like octomap's rays, clearing stops at max range.
         too_long = length_m > self._config.max_range_m
         segments[too_long] *= (self._config.max_range_m / length_m[too_long])[:, None]
-        vertices = (centres[:, None, :] + _CUBE_CORNERS[None, :, :] * (0.5 * self.resolution_m)).reshape(-1, 3)
-        offsets = 8 * np.arange(centres.shape[0], dtype=np.uint32)
+        vertices = (centers[:, None, :] + _CUBE_CORNERS[None, :, :] * (0.5 * self.resolution_m)).reshape(-1, 3)
+        offsets = 8 * np.arange(centers.shape[0], dtype=np.uint32)
         triangles = (_CUBE_TRIANGLES[None, :, :] + offsets[:, None, None]).reshape(-1, 3)
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles))
@@ -171,7 +195,7 @@ class OccupancyMap:
         if hits["t_hit"].size == 0:
             return np.empty(0, dtype=np.int64)
         voxel = hits["primitive_ids"].astype(np.int64) // _CUBE_TRIANGLES.shape[0]
-        pair = hits["ray_ids"].astype(np.int64) * centres.shape[0] + voxel
+        pair = hits["ray_ids"].astype(np.int64) * centers.shape[0] + voxel
         # A segment crosses a voxel when it leaves it before its end: the last of its
         # (entry, exit) intersections with that cube has t < 1. The voxel holding the point
         # itself is not crossed, as in octomap.
@@ -179,39 +203,44 @@ class OccupancyMap:
         pair, t_hit = pair[order], hits["t_hit"][order]
         starts = np.flatnonzero(np.r_[True, pair[1:] != pair[:-1]])
         last_t = np.maximum.reduceat(t_hit, starts)
-        crossed = np.unique(pair[starts][last_t < 1.0] % centres.shape[0])
-        return _pack_keys(_centres_to_keys(centres[crossed], self.resolution_m))
+        crossed = np.unique(pair[starts][last_t < 1.0] % centers.shape[0])
+        return _pack_keys(_centers_to_keys(centers[crossed], self.resolution_m))
 
     def occupied_centers_m(self) -> FloatArray:
-        """Centres of all occupied voxels at leaf resolution.
+        """Centers of all occupied voxels at leaf resolution.
 
         Returns:
-            (N, 3) float64 read-only array of voxel centres in the world frame [m], sorted by
+            (N, 3) float64 read-only array of voxel centers in the world frame [m], sorted by
             voxel key. Pruned coarse nodes are expanded into their leaf-size voxels.
         """
         if self._occupied_cache is None:
-            centres = _keys_to_centres(np.sort(self._occupied_keys()), self.resolution_m)
-            centres.setflags(write=False)
-            self._occupied_cache = centres
+            centers = _keys_to_centers(np.sort(self._occupied_keys()), self.resolution_m)
+            centers.setflags(write=False)
+            self._occupied_cache = centers
         return self._occupied_cache
 
+    def occupied_voxels(self) -> OccupiedVoxels:
+        """The occupied voxels and their grid keys; this map keeps no labels."""
+        centers = self.occupied_centers_m()
+        return OccupiedVoxels(ijk=np.floor(centers / self.resolution_m).astype(np.int64), centers_m=centers, labels=None)
+
     def inflated_centers_m(self) -> FloatArray:
-        """Occupied voxels dilated by `config.inflation_m`, as leaf-voxel centres.
+        """Occupied voxels dilated by `config.inflation_m`, as leaf-voxel centers.
 
         The radius is rounded up to r whole voxels. A voxel is added when its cube comes
         closer than r voxels to an occupied voxel's cube (gap measured between the cubes,
-        not the centres), so the union of the inflated cubes contains every point within
+        not the centers), so the union of the inflated cubes contains every point within
         `inflation_m` of an occupied cube. r = 1 is the 26-neighbourhood.
 
         Returns:
-            (M, 3) float64 voxel centres in the world frame [m], a superset of
+            (M, 3) float64 voxel centers in the world frame [m], a superset of
             `occupied_centers_m()`, sorted by voxel key.
         """
         keys = self._occupied_keys()
         offsets = inflation_offsets(self._config.inflation_m, self.resolution_m)
         if keys.size and offsets.shape[0] > 1:
             keys = (keys[:, None] + _pack_offsets(offsets)[None, :]).ravel()
-        return _keys_to_centres(np.unique(keys), self.resolution_m)
+        return _keys_to_centers(np.unique(keys), self.resolution_m)
 
     def planning_binary(self) -> bytes:
         """Inflated occupied voxels as a complete octomap binary `.bt` file (header + data).
@@ -221,9 +250,9 @@ class OccupancyMap:
         wants only the part after the header's "data" line (see `pipeline/collision.py`).
         """
         tree = octomap.OcTree(self.resolution_m)
-        centres = self.inflated_centers_m()
-        if centres.shape[0]:
-            tree.updateNodes(centres, True, lazy_eval=True)
+        centers = self.inflated_centers_m()
+        if centers.shape[0]:
+            tree.updateNodes(centers, True, lazy_eval=True)
             tree.updateInnerOccupancy()
         # writeBinary converts the tree to max-likelihood and prunes it in place, which is
         # why it is only ever called on this throwaway tree, never on the live map.
@@ -241,9 +270,9 @@ class OccupancyMap:
     def _occupied_keys(self) -> npt.NDArray[np.int64]:
         """Packed grid keys of occupied voxels at leaf resolution (unsorted, unique)."""
         if self._occupied_cache is not None:
-            return _pack_keys(_centres_to_keys(self._occupied_cache, self.resolution_m))
+            return _pack_keys(_centers_to_keys(self._occupied_cache, self.resolution_m))
         res = self.resolution_m
-        leaf_centres: list[FloatArray] = []
+        leaf_centers: list[FloatArray] = []
         block_corners: dict[int, list[FloatArray]] = {}
         # octomap-python's extractPointCloud also expands pruned *free* nodes to leaves,
         # which is slow for large free volumes; iterating leaves and keeping the occupied
@@ -253,11 +282,11 @@ class OccupancyMap:
                 continue
             size = leaf.getSize()
             if size <= 1.5 * res:
-                leaf_centres.append(leaf.getCoordinate())
+                leaf_centers.append(leaf.getCoordinate())
             else:
                 width = int(round(size / res))
                 block_corners.setdefault(width, []).append(leaf.getCoordinate() - 0.5 * size)
-        parts = [np.floor(np.array(leaf_centres).reshape(-1, 3) / res).astype(np.int64)]
+        parts = [np.floor(np.array(leaf_centers).reshape(-1, 3) / res).astype(np.int64)]
         for width, corners in block_corners.items():
             # Corners of pruned blocks lie on voxel boundaries; round to absorb float32 error.
             base = np.round(np.array(corners) / res).astype(np.int64)
@@ -288,11 +317,11 @@ def inflation_offsets(inflation_m: float, resolution_m: float) -> npt.NDArray[np
     return grid[(gap * gap).sum(axis=1) < r * r]
 
 
-def _centres_to_keys(centres_m: FloatArray, resolution_m: float) -> npt.NDArray[np.int64]:
-    return np.floor(centres_m / resolution_m).astype(np.int64)
+def _centers_to_keys(centers_m: FloatArray, resolution_m: float) -> npt.NDArray[np.int64]:
+    return np.floor(centers_m / resolution_m).astype(np.int64)
 
 
-def _keys_to_centres(packed: npt.NDArray[np.int64], resolution_m: float) -> FloatArray:
+def _keys_to_centers(packed: npt.NDArray[np.int64], resolution_m: float) -> FloatArray:
     return (_unpack_keys(packed).astype(np.float64) + 0.5) * resolution_m
 
 

@@ -29,9 +29,10 @@ from robonav.pipeline.camera import CameraIntrinsics
 from robonav.pipeline.perception.maps import voxel_kernels as kernels
 from robonav.pipeline.perception.clusters import support_layer
 from robonav.pipeline.perception.config import PerceptionConfig
-from robonav.pipeline.perception.depth import remove_depth_edges
+from robonav.pipeline.perception.depth import depth_from_points, remove_depth_edges
 from robonav.pipeline.perception.filtering import validate_transform
 from robonav.pipeline.perception.maps.octree import inflation_offsets
+from robonav.pipeline.perception.maps.protocol import CameraFrame, FrameRejected, OccupiedVoxels
 from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.types import BoolArray, FloatArray, IntArray
 
@@ -136,6 +137,26 @@ class ProjectionOccupancyMap:
         self._mirror = self._new_mirror()
         self._occupied_cache = None
 
+    def integrate(self, frame: CameraFrame, *, self_filter: SelfFilter, clear_filter: SelfFilter) -> dict[str, float]:
+        """`OccupancyBackend.integrate`: a cloud is first turned into its depth image.
+
+        Raises:
+            FrameRejected: "empty" when no pixel has a return: that says the sensor failed, not
+                that the world is empty, and must not clear the map.
+        """
+        t0 = time.perf_counter()
+        if frame.depth_m is not None:
+            depth, labels = frame.depth_m, frame.labels
+        else:
+            assert frame.points_camera_m is not None
+            (depth, _), labels = depth_from_points(frame.points_camera_m, frame.intrinsics), None
+        to_depth_ms = (time.perf_counter() - t0) * 1e3
+        if not np.isfinite(depth).any():
+            raise FrameRejected("empty", "a frame without returns")
+        update = self.integrate_depth(depth, frame.intrinsics, frame.world_from_camera, self_filter=self_filter,
+                                      world_from_link=frame.world_from_link, labels=labels, clear_filter=clear_filter)
+        return {"to_depth": to_depth_ms, **update.stage_ms}
+
     def integrate_depth(
         self,
         depth_m: npt.ArrayLike,
@@ -223,7 +244,7 @@ class ProjectionOccupancyMap:
         robot_voxels = np.empty(0, dtype=np.int64)
         if self_filter is not None and world_from_link is not None:
             if hits.size:
-                outside = self_filter.outside_mask(self.centres_m(hits), world_from_link)
+                outside = self_filter.outside_mask(self.centers_m(hits), world_from_link)
                 self_filtered = int(hits.size - np.count_nonzero(outside))
                 hits = hits[outside]
             if occupied.size:
@@ -277,13 +298,13 @@ class ProjectionOccupancyMap:
         )
 
     def _on_robot(self, indices: IntArray, robot: SelfFilter, world_from_link: Mapping[str, npt.ArrayLike]) -> IntArray:
-        """The voxels of `indices` whose centres lie inside `robot`'s padded links."""
+        """The voxels of `indices` whose centers lie inside `robot`'s padded links."""
         # Only voxels in the robot's bounding box can be inside it: a cheap cut of a map that
         # is mostly table and objects.
         lower, upper = robot.bounds_m(world_from_link)
-        centres = self.centres_m(indices)
-        near = np.flatnonzero(np.all((centres >= lower) & (centres <= upper), axis=1))
-        return indices[near[~robot.outside_mask(centres[near], world_from_link)]]
+        centers = self.centers_m(indices)
+        near = np.flatnonzero(np.all((centers >= lower) & (centers <= upper), axis=1))
+        return indices[near[~robot.outside_mask(centers[near], world_from_link)]]
 
     def _complete_support(self, self_filter: SelfFilter | None,
                           world_from_link: Mapping[str, npt.ArrayLike] | None) -> IntArray:
@@ -313,27 +334,32 @@ class ProjectionOccupancyMap:
         flat = (cells[inside, 0] * self._dims[1] + cells[inside, 1]) * self._dims[2] + layer
         unknown = flat[self._log_odds[flat] == 0.0]
         if unknown.size and self_filter is not None and world_from_link is not None:
-            unknown = unknown[self_filter.outside_mask(self.centres_m(unknown), world_from_link)]
+            unknown = unknown[self_filter.outside_mask(self.centers_m(unknown), world_from_link)]
         if unknown.size:
             self._log_odds[unknown] = self._l_hit
             self._occupied_cache = None
         return unknown
 
     def free_where(self, inside: Callable[[FloatArray], BoolArray]) -> int:
-        """Free every occupied voxel whose centre `inside` flags (space known to be taken by
+        """Free every occupied voxel whose center `inside` flags (space known to be taken by
         something the planner already models); returns how many."""
         occupied = self.occupied_indices()
         if occupied.size == 0:
             return 0
-        mask = np.asarray(inside(self.centres_m(occupied)), dtype=bool)
+        mask = np.asarray(inside(self.centers_m(occupied)), dtype=bool)
         if mask.shape != occupied.shape:
-            raise ValueError(f"inside() must return one bool per centre, got shape {mask.shape}")
+            raise ValueError(f"inside() must return one bool per center, got shape {mask.shape}")
         freed = occupied[mask]
         if freed.size:
             self._log_odds[freed] = _CLAMP_MIN_LOG
             self._occupied_cache = None
             self._apply_inflation(np.empty(0, dtype=np.int64), freed)
         return int(freed.size)
+
+    def occupied_voxels(self) -> OccupiedVoxels:
+        """The occupied voxels, their grid coordinates and the last label seen in each."""
+        occupied = self.occupied_indices()
+        return OccupiedVoxels(ijk=self.ijk(occupied), centers_m=self.centers_m(occupied), labels=self.labels_of(occupied))
 
     def occupied_indices(self) -> IntArray:
         """Flat grid indices of occupied voxels (log-odds > 0), ascending."""
@@ -342,12 +368,12 @@ class ProjectionOccupancyMap:
         return self._occupied_cache
 
     def occupied_centers_m(self) -> FloatArray:
-        """(N, 3) centres of occupied voxels in the world frame [m]."""
-        return self.centres_m(self.occupied_indices())
+        """(N, 3) centers of occupied voxels in the world frame [m]."""
+        return self.centers_m(self.occupied_indices())
 
     def inflated_centers_m(self) -> FloatArray:
-        """(M, 3) centres of occupied voxels dilated by `inflation_m` (see `occupancy.inflation_offsets`)."""
-        return self.centres_m(np.flatnonzero(self._inflation_count > 0))
+        """(M, 3) centers of occupied voxels dilated by `inflation_m` (see `occupancy.inflation_offsets`)."""
+        return self.centers_m(np.flatnonzero(self._inflation_count > 0))
 
     def labels_of(self, indices: IntArray) -> npt.NDArray[np.int32]:
         """The last label seen in each voxel (-1 when none)."""
@@ -358,13 +384,13 @@ class ProjectionOccupancyMap:
         ny, nz = int(self._dims[1]), int(self._dims[2])
         return np.column_stack([indices // (ny * nz), (indices // nz) % ny, indices % nz])
 
-    def centres_m(self, indices: IntArray) -> FloatArray:
-        """Voxel centres [m] of flat grid indices."""
+    def centers_m(self, indices: IntArray) -> FloatArray:
+        """Voxel centers [m] of flat grid indices."""
         return (self.ijk(indices) + self._origin_key + 0.5) * self._config.resolution_m
 
-    def grid_indices(self, centres_m: npt.ArrayLike) -> IntArray:
-        """Flat indices of the voxels holding `centres_m` (-1 outside the grid)."""
-        keys = np.floor(np.asarray(centres_m, dtype=np.float64) / self._config.resolution_m).astype(np.int64)
+    def grid_indices(self, centers_m: npt.ArrayLike) -> IntArray:
+        """Flat indices of the voxels holding `centers_m` (-1 outside the grid)."""
+        keys = np.floor(np.asarray(centers_m, dtype=np.float64) / self._config.resolution_m).astype(np.int64)
         ijk = keys - self._origin_key
         inside = np.all((ijk >= 0) & (ijk < self._dims), axis=1)
         flat = (ijk[:, 0] * self._dims[1] + ijk[:, 1]) * self._dims[2] + ijk[:, 2]
@@ -397,9 +423,9 @@ class ProjectionOccupancyMap:
             return
         inflated = self._inflation_count[touched] > 0
         if inflated.any():
-            self._mirror.updateNodes(self.centres_m(touched[inflated]), True)
+            self._mirror.updateNodes(self.centers_m(touched[inflated]), True)
         if (~inflated).any():
-            self._mirror.updateNodes(self.centres_m(touched[~inflated]), False)
+            self._mirror.updateNodes(self.centers_m(touched[~inflated]), False)
 
     def _new_mirror(self) -> octomap.OcTree:
         tree = octomap.OcTree(self._config.resolution_m)

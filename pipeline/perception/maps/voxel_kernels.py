@@ -119,8 +119,8 @@ def seen_through(voxels: np.ndarray, origin_key: np.ndarray, resolution_m: float
                  near_m: float, max_range_m: float, margin_m: float, max_footprint_px: int) -> np.ndarray:
     """Mask of voxels the camera provably sees past: free-space evidence by projection.
 
-    Each voxel centre is projected into the depth image. The voxel is seen through when every
-    pixel of its footprint (half a voxel around the centre, at most `max_footprint_px`
+    Each voxel center is projected into the depth image. The voxel is seen through when every
+    pixel of its footprint (half a voxel around the center, at most `max_footprint_px`
     pixels from it) returned a depth beyond the voxel's depth plus `margin_m`, or no return
     at all (nothing within the sensor's range on that ray). Voxels behind the camera, outside
     the image or beyond `max_range_m` get no evidence. Taking the nearest depth of the whole

@@ -30,7 +30,7 @@ influence 0.15 m, `CollisionWorld.clearance_m`, motion checks at 0.02 rad):
 - 2-D point robot, a wall across the line from start to goal: stuck in front of it (at
   x = 0.37 for a wall face at x = 0.45) whenever the face the robot meets is flat and
   perpendicular to the attraction, symmetric or not: the clearance gradient of a flat face has
-  no sideways component. An obstacle only partly across the line (off-centre) is slid past.
+  no sideways component. An obstacle only partly across the line (off-center) is slid past.
 - 2-D U-shaped trap (a cup open towards the start, its bottom across the line): the classic
   trap. Plain descent stops at the cup's bottom after 61 steps (0.02 s, TIMEOUT "local
   minimum"). With random walks of 0.1 rad steps (20 steps, doubling) and up to 8 escapes,

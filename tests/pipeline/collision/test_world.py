@@ -164,7 +164,7 @@ def test_clearance_decreases_as_obstacle_approaches(panda: RobotModel, world: Co
         world.set_objects([SceneObject("ball", "sphere", (hand[0] + offset, hand[1], hand[2]), radius_m=0.05)])
         clearances.append(world.clearance_m(panda.home_position_rad))
     assert all(a > b for a, b in zip(clearances, clearances[1:]))
-    assert clearances[0] < 0.6 - 0.05  # the hand is at most `offset` from the ball centre
+    assert clearances[0] < 0.6 - 0.05  # the hand is at most `offset` from the ball center
 
 
 def test_motion_through_block_invalid_around_valid(panda: RobotModel, world: CollisionWorld) -> None:

@@ -22,23 +22,23 @@ def top_face_points() -> np.ndarray:
     return np.column_stack([xx.ravel(), yy.ravel(), np.full(xx.size, 0.409)])
 
 
-def voxel_centres(points: np.ndarray) -> np.ndarray:
+def voxel_centers(points: np.ndarray) -> np.ndarray:
     return np.unique((np.floor(points / RES) + 0.5) * RES, axis=0)
 
 
-def accuracy(centres: np.ndarray):
-    return map_accuracy(centres, RES, visible_surface_m=top_face_points(), objects=[BOX],
+def accuracy(centers: np.ndarray):
+    return map_accuracy(centers, RES, visible_surface_m=top_face_points(), objects=[BOX],
                         robot_hulls=ROBOT.link_hull_vertices, world_from_link=LINKS)
 
 
 def test_a_map_of_exactly_the_seen_face_is_fully_covered_and_clean() -> None:
-    found = accuracy(voxel_centres(top_face_points()))
+    found = accuracy(voxel_centers(top_face_points()))
     assert found.surface_voxels == 100 and found.surface_covered == 1.0 and found.surface_covered_within_one_voxel == 1.0
     assert (found.spurious, found.on_robot) == (0, 0)
 
 
 def test_missing_voxels_count_against_coverage_and_shifted_ones_only_strictly() -> None:
-    face = voxel_centres(top_face_points())
+    face = voxel_centers(top_face_points())
     assert accuracy(face[10:]).surface_covered == 0.9
     shifted = accuracy(face + [0.0, 0.0, RES])  # one layer up: noise put every return above the face
     assert shifted.surface_covered == 0.0 and shifted.surface_covered_within_one_voxel == 1.0
@@ -49,6 +49,6 @@ def test_voxels_inside_the_box_are_not_spurious_but_far_ones_and_ones_on_the_arm
     inside = np.array([[0.61, 0.01, 0.31]])  # filled below the seen face
     far = np.array([[0.61, 0.01, 0.61], [-0.5, 0.5, 0.5]])
     hand = ROBOT.frame_pose(np.array(RobotConfig().home_position_rad), "panda_link5")[:3, 3][None]
-    found = accuracy(np.vstack([voxel_centres(top_face_points()), inside, far, hand]))
+    found = accuracy(np.vstack([voxel_centers(top_face_points()), inside, far, hand]))
     assert found.occupied == 104 and found.spurious == 3 and found.on_robot == 1
     assert found.spurious_fraction == 3 / 104

@@ -37,7 +37,7 @@ def checker(mbm_panda: RobotModel) -> MeshCollisionChecker:
 
 
 def _hand_box(robot: RobotModel, q: np.ndarray, name: str = "crate") -> SceneObject:
-    """A 6 cm cube centred on the hand's origin at `q`."""
+    """A 6 cm cube centered on the hand's origin at `q`."""
     hand = robot.link_poses(q)["panda_hand"][:3, 3]
     return SceneObject(name, "box", tuple(float(v) for v in hand), size_m=(0.06, 0.06, 0.06))
 

@@ -113,16 +113,16 @@ def test_config_rejects_negative_escape_settings() -> None:
 
 
 def _voxel_box(low_m: np.ndarray, high_m: np.ndarray) -> np.ndarray:
-    """Centres of the VOXEL_M grid cells whose centres lie in [low_m, high_m]."""
+    """Centers of the VOXEL_M grid cells whose centers lie in [low_m, high_m]."""
     axes = [np.arange(np.ceil(lo / VOXEL_M - 0.5), np.floor(hi / VOXEL_M - 0.5) + 1) * VOXEL_M + VOXEL_M / 2
             for lo, hi in zip(low_m, high_m)]
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-def _octree(centres_m: np.ndarray) -> bytes:
+def _octree(centers_m: np.ndarray) -> bytes:
     tree = octomap.OcTree(VOXEL_M)
-    for centre in centres_m:
-        tree.updateNode(centre, True)
+    for center in centers_m:
+        tree.updateNode(center, True)
     return tree.writeBinary()
 
 

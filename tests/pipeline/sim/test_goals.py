@@ -21,7 +21,7 @@ def test_perceivable_objects_are_solid_down_to_the_floor() -> None:
     tilted = SceneObject("cyl", "cylinder", (0.5, 0.2, 0.4), quat_xyzw=(0.0, 0.38268, 0.0, 0.92388), radius_m=0.05,
                          length_m=0.2)
     (box,) = perceivable_objects([tilted], floor_z_m=0.0)
-    centre, half = box.local_bounds_m
+    center, half = box.local_bounds_m
     low, high = np.array(box.position_m) - half, np.array(box.position_m) + half
     assert low[2] == pytest.approx(0.0) and box.type == "box" and box.name == "cyl"
     # The tilted cylinder's ends reach beyond its radius in x; the box covers them.

@@ -48,7 +48,7 @@ def test_clutter_sits_on_the_table_and_keeps_clear_of_the_robot(index: int) -> N
     loose = [o for o in scene.objects if o.name.startswith("item_")]
     assert CONFIG.objects_min - 2 <= len(loose) <= CONFIG.objects_max  # a crowded table may refuse a few
     for obj in scene.objects[1:]:
-        centre, half = obj.local_bounds_m
+        center, half = obj.local_bounds_m
         bottom = obj.position_m[2] - (half[2] if obj.type != "box" or obj.quat_xyzw[:2] == (0.0, 0.0) else np.max(half))
         assert bottom >= top_z - 1e-9, f"{obj.name} sinks into the table"
         assert math.hypot(*obj.position_m[:2]) >= CONFIG.keep_clear_radius_m

@@ -54,7 +54,7 @@ def _cylinder_sdf(obj: SceneObject, pts: FloatArray) -> FloatArray:
 
 
 def _capsule_sdf(obj: SceneObject, pts: FloatArray) -> FloatArray:
-    # length_m is the cylindrical section between the cap centres.
+    # length_m is the cylindrical section between the cap centers.
     z = np.clip(pts[:, 2], -obj.length_m / 2.0, obj.length_m / 2.0)
     return np.linalg.norm(pts - np.column_stack([np.zeros_like(z), np.zeros_like(z), z]), axis=1) - obj.radius_m
 
@@ -175,16 +175,16 @@ def test_box_depth_lands_on_the_box_surface_in_the_world_frame() -> None:
     assert np.abs(_box_sdf(BOX, points)).max() < 0.01
 
 
-def test_box_centre_projects_to_a_box_pixel() -> None:
+def test_box_center_projects_to_a_box_pixel() -> None:
     with make_world(BOX, camera=CAMERA) as world:
         frame = world.render_depth()
         labels = world.body_labels()
-    centre_camera = transform_points(np.linalg.inv(frame.world_from_camera), np.array([BOX.position_m]))[0]
+    center_camera = transform_points(np.linalg.inv(frame.world_from_camera), np.array([BOX.position_m]))[0]
     k = frame.intrinsics
-    u = round(k.fx * centre_camera[0] / centre_camera[2] + k.cx)
-    v = round(k.fy * centre_camera[1] / centre_camera[2] + k.cy)
+    u = round(k.fx * center_camera[0] / center_camera[2] + k.cx)
+    v = round(k.fy * center_camera[1] / center_camera[2] + k.cy)
     assert labels[int(frame.segmentation[v, u])] == "box"
-    assert 0.0 < frame.depth_m[v, u] < centre_camera[2]  # the visible face is in front of the centre
+    assert 0.0 < frame.depth_m[v, u] < center_camera[2]  # the visible face is in front of the center
 
 
 def test_segmentation_labels_identify_objects_and_background() -> None:
@@ -259,7 +259,7 @@ def test_projection_matrix_matches_pinhole_model() -> None:
     point_camera = np.array([0.2, -0.1, 1.5])  # optical frame
     clip = proj @ np.array([point_camera[0], -point_camera[1], -point_camera[2], 1.0])  # OpenGL eye frame
     ndc = clip[:3] / clip[3]
-    u = (ndc[0] + 1.0) / 2.0 * k.width - 0.5  # pixel centres at integers, v downwards
+    u = (ndc[0] + 1.0) / 2.0 * k.width - 0.5  # pixel centers at integers, v downwards
     v = (1.0 - ndc[1]) / 2.0 * k.height - 0.5
     assert u == pytest.approx(k.fx * 0.2 / 1.5 + k.cx)
     assert v == pytest.approx(k.fy * -0.1 / 1.5 + k.cy)

@@ -17,13 +17,13 @@ HOME = ROBOT.home_position_rad
 PATH = np.array([HOME, HOME + [1.0, 0.2, 0.0, 0.3, 0.0, 0.0, 0.0], HOME + [2.0, 0.3, 0.0, 0.3, 0.0, -0.2, 0.0]])
 
 
-def cube_of_voxels(centre: np.ndarray, size_m: float = 0.1, voxel_m: float = 0.02) -> np.ndarray:
+def cube_of_voxels(center: np.ndarray, size_m: float = 0.1, voxel_m: float = 0.02) -> np.ndarray:
     axis = np.arange(-size_m / 2 + voxel_m / 2, size_m / 2, voxel_m)
-    return centre + np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    return center + np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-def blocked(guard: PathGuard, centres: np.ndarray, path: np.ndarray, q_now: np.ndarray) -> bool:
-    guard.update_map(centres, 0.02)
+def blocked(guard: PathGuard, centers: np.ndarray, path: np.ndarray, q_now: np.ndarray) -> bool:
+    guard.update_map(centers, 0.02)
     return guard.remaining_blocked(path, q_now)
 
 
@@ -66,11 +66,11 @@ def test_the_guard_is_at_least_as_cautious_as_the_planner(guard: PathGuard, seed
     side = 0.1 + 2 * CFG.perception.inflation_m
     checked = 0
     for k in range(12):
-        centre = ROBOT.frame_pose(PATH[int(rng.integers(1, 3))], "panda_hand")[:3, 3] + rng.uniform(-0.15, 0.15, 3)
-        world.set_objects([SceneObject("box", "box", tuple(centre), size_m=(side, side, side))])
+        center = ROBOT.frame_pose(PATH[int(rng.integers(1, 3))], "panda_hand")[:3, 3] + rng.uniform(-0.15, 0.15, 3)
+        world.set_objects([SceneObject("box", "box", tuple(center), size_m=(side, side, side))])
         if not world.path_valid(PATH, 0.02):
             checked += 1
-            assert blocked(guard, cube_of_voxels(centre), PATH, HOME)
+            assert blocked(guard, cube_of_voxels(center), PATH, HOME)
     assert checked > 0
 
 
@@ -106,7 +106,7 @@ def test_only_voxels_new_since_the_plan_count(guard: PathGuard) -> None:
 def test_new_voxel_count_counts_only_voxels_the_previous_map_lacks() -> None:
     voxel_m = 0.02
     before = np.array([[0.01, 0.01, 0.01], [0.03, 0.01, 0.01], [0.51, 0.21, 0.31]])
-    # The same voxels (centres off by less than a voxel), one gone and two new.
+    # The same voxels (centers off by less than a voxel), one gone and two new.
     now = np.array([[0.015, 0.005, 0.01], [0.51, 0.21, 0.31], [0.07, 0.01, 0.01], [-0.01, 0.01, 0.01]])
     assert new_voxel_count(before, now, voxel_m) == 2
     assert new_voxel_count(now, now, voxel_m) == 0

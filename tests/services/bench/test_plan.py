@@ -117,7 +117,7 @@ def test_cloud_occupancy_covers_the_obstacle_surfaces() -> None:
     assert resolution_m == pytest.approx(0.02)
     tree = octomap.OcTree(resolution_m)
     assert tree.readBinary(binary)
-    for point in _corners_and_centre(box):  # every corner and the centre of the plate lie in occupied voxels
+    for point in _corners_and_center(box):  # every corner and the center of the plate lie in occupied voxels
         assert _occupied(tree, point), point
     assert not _occupied(tree, np.array([0.5, 0.1, 0.4]))  # 18 cm above the plate: beyond the 2 cm inflation
 
@@ -129,7 +129,7 @@ def _occupied(tree: octomap.OcTree, point_m: np.ndarray) -> bool:
         return False
 
 
-def _corners_and_centre(box: SceneObject) -> list[np.ndarray]:
+def _corners_and_center(box: SceneObject) -> list[np.ndarray]:
     half = 0.5 * np.array(box.size_m)
     pose = box.world_from_object
     local = [np.array([x, y, z]) * half for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)] + [np.zeros(3)]

@@ -187,12 +187,12 @@ def test_bad_requests_get_structured_errors(executor: tuple[ExecutorNode, Robona
     assert isinstance(ok, ExecuteResponse)
 
 
-def _map_with_cubes(centres_m: np.ndarray, stamp: float) -> bytes:
+def _map_with_cubes(centers_m: np.ndarray, stamp: float) -> bytes:
     tree = octomap.OcTree(0.02)
-    for centre in centres_m:
-        tree.updateNode(np.asarray(centre, dtype=np.float64), True)
+    for center in centers_m:
+        tree.updateNode(np.asarray(center, dtype=np.float64), True)
     return Occupancy(stamp=stamp, resolution_m=0.02, octomap_binary=tree.writeBinary(),
-                     occupied_centers_m=np.asarray(centres_m, dtype=np.float32).reshape(-1, 3)).to_wire()
+                     occupied_centers_m=np.asarray(centers_m, dtype=np.float32).reshape(-1, 3)).to_wire()
 
 
 @pytest.mark.parametrize("planned_on", ["older map", "newest map"])

@@ -101,8 +101,8 @@ def _drop_box_on_the_way(client: RobonavClient, goal: np.ndarray, *, replan: boo
             occupancy = client.occupancy
             if occupancy is None or occupancy.stamp <= cleared_at:
                 return False
-            centres = occupancy.occupied_centers_m
-            return not np.any(np.all((centres >= low) & (centres <= high), axis=1))
+            centers = occupancy.occupied_centers_m
+            return not np.any(np.all((centers >= low) & (centers <= high), axis=1))
 
         assert client.wait_for(box_forgotten, 10.0), "the removed box stays in the map"
     return status, plan.path

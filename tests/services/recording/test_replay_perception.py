@@ -20,7 +20,7 @@ import pytest
 import zenoh
 
 from robonav.pipeline.wire.messages import JointState, PointCloud
-from robonav.pipeline.perception.cloud_pipeline import process_cloud_with_clearing
+from robonav.pipeline.perception.maps.protocol import CameraFrame
 from robonav.pipeline.perception.maps.octree import OccupancyMap
 from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.robot.model import RobotModel
@@ -97,11 +97,8 @@ def _occupancy(messages: list[tuple[str, bytes]], robot: RobotModel) -> bytes:
         cloud = PointCloud.from_wire(payload)
         nearest = min(max(bisect.bisect_left(stamps, cloud.stamp), 0), len(stamps) - 1)
         world_from_link = robot.link_poses(positions[nearest])
-        points_world, clear_only_world, _ = process_cloud_with_clearing(
-            cloud.points, world_from_camera=world_from_camera, config=CONFIG.perception,
-            self_filter=self_filter, world_from_link=world_from_link)
-        occupancy.insert(points_world, world_from_camera[:3, 3], clear_only_world=clear_only_world)
-        occupancy.free_voxels_where(lambda centres: ~self_filter.outside_mask(centres, world_from_link))
+        occupancy.integrate(CameraFrame(CAMERA.intrinsics, world_from_camera, world_from_link, points_camera_m=cloud.points),
+                            self_filter=self_filter, clear_filter=self_filter)
     return occupancy.planning_binary()
 
 

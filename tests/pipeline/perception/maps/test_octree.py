@@ -17,8 +17,8 @@ def _wall(x_m: float, half_width_m: float, n: int, seed: int) -> np.ndarray:
     return np.column_stack([np.full(n, x_m), yz[:, 0], yz[:, 1] + 0.5])
 
 
-def _keys(centres: np.ndarray) -> set[tuple[int, int, int]]:
-    return set(map(tuple, np.floor(centres / RES).astype(np.int64).tolist()))
+def _keys(centers: np.ndarray) -> set[tuple[int, int, int]]:
+    return set(map(tuple, np.floor(centers / RES).astype(np.int64).tolist()))
 
 
 def _leaf_keys_of_tree(tree: octomap.OcTree) -> set[tuple[int, int, int]]:
@@ -41,14 +41,14 @@ def test_wall_becomes_occupied_voxels_at_the_wall() -> None:
     assert occupancy.voxel_count == 0
     for frame in range(3):
         occupancy.insert(_wall(1.0, 0.2, 20_000, seed=frame), ORIGIN)
-    centres = occupancy.occupied_centers_m()
-    assert centres.shape[1] == 3 and centres.dtype == np.float64
+    centers = occupancy.occupied_centers_m()
+    assert centers.shape[1] == 3 and centers.dtype == np.float64
     # The wall plane x = 1.0 is a voxel boundary; points sit in the voxel [1.00, 1.02).
-    np.testing.assert_allclose(centres[:, 0], 1.0 + RES / 2, atol=1e-6)
-    assert np.abs(centres[:, 1]).max() <= 0.2 + RES
+    np.testing.assert_allclose(centers[:, 0], 1.0 + RES / 2, atol=1e-6)
+    assert np.abs(centers[:, 1]).max() <= 0.2 + RES
     # 0.4 m x 0.4 m wall at 2 cm: 20 x 20 voxels (+ a boundary row if the edge straddles one).
     assert 400 <= occupancy.voxel_count <= 21 * 21
-    assert occupancy.voxel_count == centres.shape[0]
+    assert occupancy.voxel_count == centers.shape[0]
 
 
 def test_free_space_clearing_removes_a_vanished_wall() -> None:
@@ -63,8 +63,8 @@ def test_free_space_clearing_removes_a_vanished_wall() -> None:
     counts = []
     for frame in range(10):
         occupancy.insert(_wall(2.0, 0.6, 40_000, seed=100 + frame), ORIGIN)
-        centres = occupancy.occupied_centers_m()
-        counts.append(int((centres[:, 0] < 1.5).sum()))
+        centers = occupancy.occupied_centers_m()
+        counts.append(int((centers[:, 0] < 1.5).sum()))
     # Occupancy is evidence, not a single frame's view: the old wall survives one frame.
     assert counts[0] == near_before
     assert counts[-1] == 0
@@ -286,14 +286,14 @@ def test_clear_only_rejects_bad_input() -> None:
         occupancy.insert(np.empty((0, 3)), CAMERA, clear_only_world=np.array([[np.nan, 0.0, 0.0]]))
 
 
-def test_free_voxels_where_frees_only_flagged_voxels() -> None:
+def test_free_where_frees_only_flagged_voxels() -> None:
     occupancy = OccupancyMap(PerceptionConfig(resolution_m=0.02))
     xs, ys = np.meshgrid(np.arange(-0.3, 0.3, 0.01), np.arange(-0.3, 0.3, 0.01))
     wall = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.5)])
     for _ in range(5):
         occupancy.insert(wall, np.array([0.0, 0.0, 1.5]))
     before = occupancy.occupied_centers_m().copy()
-    freed = occupancy.free_voxels_where(lambda c: c[:, 0] > 0.0)
+    freed = occupancy.free_where(lambda c: c[:, 0] > 0.0)
     after = occupancy.occupied_centers_m()
     assert freed == int(np.sum(before[:, 0] > 0.0)) > 0
     assert np.all(after[:, 0] <= 0.0)
@@ -316,10 +316,10 @@ def test_fill_below_surfaces_covers_the_unseen_back_of_an_object(fill: bool) -> 
                                               fill_below_surfaces=fill))
     for _ in range(3):
         occupancy.insert(_box_surface_seen_from_front(), origin)
-    centres = occupancy.occupied_centers_m()
+    centers = occupancy.occupied_centers_m()
     # The voxel just inside the unseen -x face, mid-height.
-    has_back = bool(np.any(np.all(np.abs(centres - np.array([0.45 + 0.01, 0.01, 0.05])) < 0.011, axis=1)))
+    has_back = bool(np.any(np.all(np.abs(centers - np.array([0.45 + 0.01, 0.01, 0.05])) < 0.011, axis=1)))
     assert has_back is fill
     # Nothing is filled outside the cube's footprint (no sideways growth), nor below the floor.
-    assert np.all(np.abs(centres[:, 0] - 0.5) <= 0.07) and np.all(np.abs(centres[:, 1]) <= 0.07)
-    assert centres[:, 2].min() >= 0.0
+    assert np.all(np.abs(centers[:, 0] - 0.5) <= 0.07) and np.all(np.abs(centers[:, 1]) <= 0.07)
+    assert centers[:, 2].min() >= 0.0

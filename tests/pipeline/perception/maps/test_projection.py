@@ -62,19 +62,19 @@ def integrate(m: ProjectionOccupancyMap, frame, robot: RobotModel, self_filter: 
 
 
 def voxels_inside(m: ProjectionOccupancyMap, obj: SceneObject, shrink_m: float = 0.0) -> int:
-    centres = m.occupied_centers_m()
+    centers = m.occupied_centers_m()
     lo = np.asarray(obj.position_m) - np.asarray(obj.size_m) / 2 + shrink_m
     hi = np.asarray(obj.position_m) + np.asarray(obj.size_m) / 2 - shrink_m
-    return int(np.all((centres >= lo) & (centres <= hi), axis=1).sum())
+    return int(np.all((centers >= lo) & (centers <= hi), axis=1).sum())
 
 
 def near_box(m: ProjectionOccupancyMap, obj: SceneObject, margin_m: float) -> int:
     """Occupied voxels in the box grown by `margin_m`, above the table top's own voxel layer."""
-    centres = m.occupied_centers_m()
+    centers = m.occupied_centers_m()
     lo = np.asarray(obj.position_m) - np.asarray(obj.size_m) / 2 - margin_m
     hi = np.asarray(obj.position_m) + np.asarray(obj.size_m) / 2 + margin_m
-    above_table = centres[:, 2] > TABLE.position_m[2] + TABLE.size_m[2] / 2 + RES
-    return int((np.all((centres >= lo) & (centres <= hi), axis=1) & above_table).sum())
+    above_table = centers[:, 2] > TABLE.position_m[2] + TABLE.size_m[2] / 2 + RES
+    return int((np.all((centers >= lo) & (centers <= hi), axis=1) & above_table).sum())
 
 
 def test_a_box_is_mapped_on_its_visible_faces(robot: RobotModel, self_filter: SelfFilter) -> None:
@@ -82,16 +82,16 @@ def test_a_box_is_mapped_on_its_visible_faces(robot: RobotModel, self_filter: Se
     update = integrate(m, render(TABLE, BOX), robot, self_filter)
     assert update.hit_voxels > 0 and update.newly_occupied == m.voxel_count
     # Every occupied voxel is on the table or the box, not in the air around them.
-    centres = m.occupied_centers_m()
-    on_something = np.zeros(len(centres), dtype=bool)
+    centers = m.occupied_centers_m()
+    on_something = np.zeros(len(centers), dtype=bool)
     for obj in (TABLE, BOX):
         lo = np.asarray(obj.position_m) - np.asarray(obj.size_m) / 2 - RES
         hi = np.asarray(obj.position_m) + np.asarray(obj.size_m) / 2 + RES
-        on_something |= np.all((centres >= lo) & (centres <= hi), axis=1)
-    assert on_something.all(), centres[~on_something][:5]
+        on_something |= np.all((centers >= lo) & (centers <= hi), axis=1)
+    assert on_something.all(), centers[~on_something][:5]
     # The top face of the box (0.16 m square at 2 cm) is fully there.
-    top = centres[(np.abs(centres[:, 2] - 0.40) < 0.0201) & (np.abs(centres[:, 0] - 0.55) < 0.07)
-                  & (np.abs(centres[:, 1] - 0.25) < 0.07)]
+    top = centers[(np.abs(centers[:, 2] - 0.40) < 0.0201) & (np.abs(centers[:, 0] - 0.55) < 0.07)
+                  & (np.abs(centers[:, 1] - 0.25) < 0.07)]
     assert len(top) >= 36
 
 
@@ -114,14 +114,14 @@ def test_box_moved_10_cm_leaves_nothing_at_its_old_place(robot: RobotModel, self
         integrate(m, before, robot, self_filter)
     for _ in range(3):
         integrate(m, after, robot, self_filter)
-    centres = m.occupied_centers_m()
+    centers = m.occupied_centers_m()
     lo_new = np.asarray(MOVED.position_m) - np.asarray(MOVED.size_m) / 2 - RES
     hi_new = np.asarray(MOVED.position_m) + np.asarray(MOVED.size_m) / 2 + RES
     lo_old = np.asarray(BOX.position_m) - np.asarray(BOX.size_m) / 2
     hi_old = np.asarray(BOX.position_m) + np.asarray(BOX.size_m) / 2
-    in_old = np.all((centres >= lo_old) & (centres <= hi_old), axis=1) & (centres[:, 2] > 0.2 + RES)
-    in_new = np.all((centres >= lo_new) & (centres <= hi_new), axis=1)
-    assert not (in_old & ~in_new).any(), centres[in_old & ~in_new][:5]
+    in_old = np.all((centers >= lo_old) & (centers <= hi_old), axis=1) & (centers[:, 2] > 0.2 + RES)
+    in_new = np.all((centers >= lo_new) & (centers <= hi_new), axis=1)
+    assert not (in_old & ~in_new).any(), centers[in_old & ~in_new][:5]
     assert in_new.sum() > 50
 
 
@@ -132,9 +132,9 @@ def test_arm_moving_through_the_view_leaves_no_voxels(robot: RobotModel, self_fi
     for q in poses:
         integrate(m, render(TABLE, q=q), robot, self_filter, q)
     # Only the table is left: nothing above its top face (0.2 m) plus a voxel.
-    centres = m.occupied_centers_m()
+    centers = m.occupied_centers_m()
     assert m.voxel_count > 100
-    assert (centres[:, 2] <= 0.2 + RES).all(), centres[centres[:, 2] > 0.2 + RES][:5]
+    assert (centers[:, 2] <= 0.2 + RES).all(), centers[centers[:, 2] > 0.2 + RES][:5]
 
 
 def test_two_cameras_fuse_into_one_map(robot: RobotModel, self_filter: SelfFilter) -> None:
@@ -145,10 +145,10 @@ def test_two_cameras_fuse_into_one_map(robot: RobotModel, self_filter: SelfFilte
     integrate(both, b, robot, self_filter)
     # The back camera sees the faces of the box that face it (-x and -y sides).
     def far_side(m: ProjectionOccupancyMap) -> int:
-        centres = m.occupied_centers_m()
+        centers = m.occupied_centers_m()
         lo = np.asarray(BOX.position_m) - np.asarray(BOX.size_m) / 2
-        return int(((np.abs(centres[:, 0] - (lo[0] + RES / 2)) < RES) & (centres[:, 2] > 0.22)
-                    & (np.abs(centres[:, 1] - BOX.position_m[1]) < 0.07)).sum())
+        return int(((np.abs(centers[:, 0] - (lo[0] + RES / 2)) < RES) & (centers[:, 2] > 0.22)
+                    & (np.abs(centers[:, 1] - BOX.position_m[1]) < 0.07)).sum())
     assert far_side(both) > far_side(front) + 10
     # Neither camera clears what the other one sees.
     assert both.voxel_count >= front.voxel_count
@@ -161,14 +161,14 @@ def test_clusters_match_the_sim_objects(robot: RobotModel, self_filter: SelfFilt
         names = world.body_labels()
     integrate(m, frame, robot, self_filter)
     occupied = m.occupied_indices()
-    found = cluster_voxels(m.ijk(occupied), m.centres_m(occupied), RES, labels=m.labels_of(occupied))
+    found = cluster_voxels(m.ijk(occupied), m.centers_m(occupied), RES, labels=m.labels_of(occupied))
     by_label = {names.get(int(i), "?"): k for k, i in enumerate(found.label_ids)}
     assert {"table", "box", "can"} <= set(by_label), by_label
     for obj in (BOX, CAN):
         k = by_label[obj.name]
         assert np.all(found.bbox_min_m[k][:2] <= np.asarray(obj.position_m[:2]) + 0.01)
         assert np.all(found.bbox_max_m[k][:2] >= np.asarray(obj.position_m[:2]) - 0.01)
-    dbscan = cluster_voxels(m.ijk(occupied), m.centres_m(occupied), RES, labels=m.labels_of(occupied), method="dbscan")
+    dbscan = cluster_voxels(m.ijk(occupied), m.centers_m(occupied), RES, labels=m.labels_of(occupied), method="dbscan")
     assert dbscan.count == found.count
 
 
@@ -205,9 +205,9 @@ def test_planning_binary_holds_the_inflated_voxels(robot: RobotModel, self_filte
 
 
 def test_the_arm_passing_close_to_an_obstacle_does_not_erase_it(robot: RobotModel) -> None:
-    """A box 2.1 cm from the hand puts voxel centres between the clearing radius (2 cm) and the
+    """A box 2.1 cm from the hand puts voxel centers between the clearing radius (2 cm) and the
     return filter's (4 cm): it must stay in the map while the arm is beside it. (A planned
-    motion keeps voxel centres about 4 cm away: robot padding + inflation + half a voxel.)"""
+    motion keeps voxel centers about 4 cm away: robot padding + inflation + half a voxel.)"""
     returns = SelfFilter(robot.link_hull_vertices, 0.04)
     box = SceneObject("box", "box", (0.307, 0.155, 0.59), size_m=(0.1, 0.06, 0.1))  # 2.1 cm from the hand at home
     away = HOME + np.array([-1.2, 0, 0, 0, 0, 0, 0])
@@ -231,9 +231,9 @@ def _frame_args(frame) -> tuple:  # noqa: ANN001
 
 def table_columns_missing(m: ProjectionOccupancyMap, table: SceneObject = TABLE) -> int:
     """Columns over the table top with no occupied voxel at or above its top layer."""
-    centres = m.occupied_centers_m()
+    centers = m.occupied_centers_m()
     top = table.position_m[2] + table.size_m[2] / 2
-    seen = set(map(tuple, np.floor(centres[centres[:, 2] > top - RES][:, :2] / RES).astype(int)))
+    seen = set(map(tuple, np.floor(centers[centers[:, 2] > top - RES][:, :2] / RES).astype(int)))
     lo = np.round((np.asarray(table.position_m[:2]) - np.asarray(table.size_m[:2]) / 2) / RES).astype(int)
     hi = np.round((np.asarray(table.position_m[:2]) + np.asarray(table.size_m[:2]) / 2) / RES).astype(int)
     return sum((i, j) not in seen for i in range(lo[0], hi[0]) for j in range(lo[1], hi[1]))
@@ -250,12 +250,12 @@ def test_the_table_is_whole_in_the_shadow_of_a_tall_object(robot: RobotModel, se
         integrate(completed, frame, robot, self_filter)
     assert table_columns_missing(plain) > 50  # the shadow (and the arm's)
     assert table_columns_missing(completed) == 0
-    centres = completed.occupied_centers_m()
+    centers = completed.occupied_centers_m()
     top = TABLE.position_m[2] + TABLE.size_m[2] / 2
-    layer = centres[np.abs(centres[:, 2] - (top + RES / 2)) < RES / 2]
+    layer = centers[np.abs(centers[:, 2] - (top + RES / 2)) < RES / 2]
     half = np.asarray(TABLE.size_m[:2]) / 2 + RES
     assert np.all(np.abs(layer[:, :2] - TABLE.position_m[:2]) <= half)  # nothing beyond the table's edges
-    assert np.all(self_filter.outside_mask(centres, robot.link_poses(HOME)))  # nor inside the arm
+    assert np.all(self_filter.outside_mask(centers, robot.link_poses(HOME)))  # nor inside the arm
 
 
 def test_a_stray_column_at_table_height_does_not_stretch_the_support_over_the_robot(
@@ -267,9 +267,9 @@ def test_a_stray_column_at_table_height_does_not_stretch_the_support_over_the_ro
     m = ProjectionOccupancyMap(CONFIG)
     for _ in range(2):
         integrate(m, frame, robot, self_filter)
-    centres = m.occupied_centers_m()
+    centers = m.occupied_centers_m()
     top = TABLE.position_m[2] + TABLE.size_m[2] / 2
-    layer = centres[np.abs(centres[:, 2] - (top + RES / 2)) < RES / 2]
+    layer = centers[np.abs(centers[:, 2] - (top + RES / 2)) < RES / 2]
     off_table = layer[np.any(np.abs(layer[:, :2] - TABLE.position_m[:2]) > np.asarray(TABLE.size_m[:2]) / 2 + RES, axis=1)]
     assert len(off_table) <= 4, off_table  # the post's own top, nothing between it and the table
 
@@ -305,9 +305,9 @@ def test_a_gap_between_tables_that_a_camera_sees_through_stays_free(robot: Robot
     m = ProjectionOccupancyMap(CONFIG)
 
     def in_gap() -> np.ndarray:
-        centres = m.occupied_centers_m()
-        return centres[(centres[:, 0] > 0.52) & (centres[:, 0] < 0.58) & (np.abs(centres[:, 1]) < 0.4)
-                       & (centres[:, 2] > 0.15)]
+        centers = m.occupied_centers_m()
+        return centers[(centers[:, 0] > 0.52) & (centers[:, 0] < 0.58) & (np.abs(centers[:, 1]) < 0.4)
+                       & (centers[:, 2] > 0.15)]
 
     integrate(m, frame, robot, self_filter)
     assert len(in_gap()) > 0  # the first frame completes the two tops into one...
@@ -339,8 +339,8 @@ def test_filling_below_a_surface_stops_at_the_robot(robot: RobotModel, self_filt
     plate = SceneObject("plate", "box", (hand[0], hand[1], hand[2] + 0.25), size_m=(0.2, 0.2, 0.02))
     m = ProjectionOccupancyMap(dataclasses.replace(CONFIG, fill_below_surfaces=True))
     integrate(m, render(TABLE, plate), robot, self_filter)
-    centres = m.occupied_centers_m()
-    below = centres[(np.abs(centres[:, 0] - hand[0]) < 0.08) & (np.abs(centres[:, 1] - hand[1]) < 0.08)
-                    & (centres[:, 2] < hand[2] + 0.2)]
+    centers = m.occupied_centers_m()
+    below = centers[(np.abs(centers[:, 0] - hand[0]) < 0.08) & (np.abs(centers[:, 1] - hand[1]) < 0.08)
+                    & (centers[:, 2] < hand[2] + 0.2)]
     assert len(below) > 10  # the plate's shadow is filled, around the arm
-    assert np.all(self_filter.outside_mask(centres, robot.link_poses(HOME)))  # but never on it
+    assert np.all(self_filter.outside_mask(centers, robot.link_poses(HOME)))  # but never on it
