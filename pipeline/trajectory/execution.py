@@ -23,7 +23,8 @@ import numpy as np
 
 from robonav.pipeline.trajectory.config import ExecutorConfig
 from robonav.pipeline.trajectory.stopping import stop_trajectory
-from robonav.pipeline.trajectory.timing import JointTrajectory, TrajectoryLimits, blend_from_state
+from robonav.pipeline.trajectory.blending import blend_from_state
+from robonav.pipeline.trajectory.trajectory import JointTrajectory, TrajectoryLimits
 from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire.codes import ErrorCode, ExecutionResult, ExecutionState
 

@@ -6,7 +6,7 @@ import numpy as np
 import numpy.typing as npt
 import ruckig
 
-from robonav.pipeline.trajectory.timing import JointTrajectory, TrajectoryLimits, validate_joint_vector
+from robonav.pipeline.trajectory.trajectory import JointTrajectory, TrajectoryLimits, validate_joint_vector
 
 
 def stop_trajectory(

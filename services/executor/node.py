@@ -34,7 +34,8 @@ from robonav.pipeline.wire.messages import (ErrorReply, ExecuteRequest, ExecuteR
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.trajectory.execution import ExecutionStateMachine, Limits
 from robonav.pipeline.trajectory.path_guard import PathGuard, map_settled
-from robonav.pipeline.trajectory.timing import JointTrajectory, time_parameterize
+from robonav.pipeline.trajectory.timing import time_parameterize
+from robonav.pipeline.trajectory.trajectory import JointTrajectory
 from robonav.pipeline.wire.codec import ProtocolError, unpack
 from robonav.pipeline.wire.codes import ErrorCode, ExecutionState
 from robonav.services.client import QueryFailed, query_one

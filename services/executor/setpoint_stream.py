@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from robonav.pipeline.trajectory.timing import JointTrajectory, TrajectoryLimits
+from robonav.pipeline.trajectory.setpoint_table import SetpointTable, sample_table
+from robonav.pipeline.trajectory.trajectory import JointTrajectory, TrajectoryLimits
 from robonav.pipeline.types import FloatArray
 from robonav.services.config import ZenohConfig
 
@@ -50,35 +51,6 @@ START_TIMEOUT_S = 60.0
 """The streaming process must have its Zenoh session up within this [s]."""
 WALL_REFRESH_S = 1.0
 """The loop measures the wall clock's offset from the monotonic one this often [s]."""
-
-
-@dataclass(frozen=True)
-class SetpointTable:
-    """One trajectory sampled on the stream's grid: row k is the setpoint for `start_s + k * period`."""
-
-    trajectory_id: str
-    start_s: float
-    """time.monotonic() of row 0, on the stream's grid [s]."""
-    position: FloatArray
-    """(K, n) [rad]; the last row is the rest state at the trajectory's end."""
-    velocity: FloatArray
-    """(K, n) [rad/s]"""
-    acceleration: FloatArray
-    """(K, n) [rad/s^2]"""
-    complete: bool = True
-    """False for a head: the whole table (same id and start) follows, and the head's last row is
-    not the end of the motion."""
-
-
-def sample_table(trajectory: JointTrajectory, trajectory_id: str, start_s: float, period_s: float,
-                 max_rows: int | None = None) -> SetpointTable:
-    """`trajectory` started at `start_s`, sampled every `period_s`; the last row is its end at rest.
-    With `max_rows`, only the head of that many rows when the trajectory is longer."""
-    rows = int(math.ceil(trajectory.duration_s / period_s - 1e-9)) + 1
-    complete = max_rows is None or rows <= max_rows
-    rows = rows if complete else max_rows
-    q, qd, qdd = trajectory.sample_many(np.arange(rows) * period_s)  # clamped: the last row is the end
-    return SetpointTable(trajectory_id, start_s, q, qd, qdd, complete)
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,8 @@ import numpy as np
 from robonav.pipeline.wire.joint_order import reorder_to_robot
 from robonav.pipeline.wire.messages import Setpoint
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.trajectory.timing import TrajectoryLimits, time_parameterize
+from robonav.pipeline.trajectory.timing import time_parameterize
+from robonav.pipeline.trajectory.trajectory import TrajectoryLimits
 from robonav.services.config import RobonavConfig, load_config
 from robonav.services.recording.files import Recording, RecordingError
 

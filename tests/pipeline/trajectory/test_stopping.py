@@ -3,7 +3,7 @@ import pytest
 
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.trajectory.stopping import stop_trajectory
-from robonav.pipeline.trajectory.timing import JointTrajectory
+from robonav.pipeline.trajectory.trajectory import JointTrajectory
 
 ROBOT = RobotConfig()
 V_MAX = np.array(ROBOT.max_velocity_rad_s)

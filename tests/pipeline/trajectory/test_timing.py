@@ -2,7 +2,9 @@ import numpy as np
 import pytest
 
 from robonav.pipeline.robot.config import RobotConfig
-from robonav.pipeline.trajectory.timing import JointTrajectory, blend_from_state, polyline_deviation, time_parameterize
+from robonav.pipeline.trajectory.blending import blend_from_state, polyline_deviation
+from robonav.pipeline.trajectory.timing import time_parameterize
+from robonav.pipeline.trajectory.trajectory import JointTrajectory
 
 ROBOT = RobotConfig()
 V_MAX = np.array(ROBOT.max_velocity_rad_s)

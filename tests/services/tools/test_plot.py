@@ -15,7 +15,7 @@ from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.services.tools import plot
 from robonav.services.config import load_config
 from robonav.services.recording.files import RecordingWriter
-from robonav.services.executor.setpoint_stream import sample_table
+from robonav.pipeline.trajectory.setpoint_table import sample_table
 
 CONFIG = load_config()
 ROBOT = RobotModel.from_config(CONFIG.robot)

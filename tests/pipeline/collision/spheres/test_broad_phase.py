@@ -9,7 +9,8 @@ import octomap
 import pytest
 
 from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
-from robonav.pipeline.collision.world import CollisionWorld, _bisection_order
+from robonav.pipeline.collision.edges import bisection_order
+from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.scene import SceneObject
@@ -115,7 +116,7 @@ def test_edge_visits_states_in_motion_valid_order(panda: RobotModel) -> None:
     a, b = panda.home_position_rad, panda.home_position_rad + 0.37
     suspects, steps = broad.edge_suspects(a, b, 0.01)
     assert steps == 37
-    assert suspects.tolist() == [37, *_bisection_order(37), 0]
+    assert suspects.tolist() == [37, *bisection_order(37), 0]
     first, _ = broad.edge_suspects(a, b, 0.01, first_only=True)
     assert first.tolist() == [37]
     broad.clear_objects()

@@ -1,0 +1,100 @@
+"""FCL shapes of link hulls and scene objects, their bounding boxes, and the leaves of an octree.
+
+Scene objects are FCL primitives (grown by a padding) or a BVH triangle soup; link hulls are
+`fcl.Convex` shapes. `occupied_leaf_centers` expands an OctoMap binary into its leaf voxels for
+the sphere broad phase.
+"""
+
+from __future__ import annotations
+
+import math
+
+import fcl
+import numpy as np
+
+from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.types import FloatArray, IntArray
+
+
+def occupied_leaf_centers(octomap_binary: bytes, resolution_m: float) -> FloatArray:
+    """(N, 3) centers [m] of the occupied leaf-size voxels of an octomap binary (pruned nodes expanded)."""
+    import octomap  # only worlds with an occupancy map need it
+
+    tree = octomap.OcTree(resolution_m)
+    if not tree.readBinary(octomap_binary):
+        raise ValueError("octomap_binary could not be read by octomap")
+    centers: list[FloatArray] = []
+    for leaf in tree.begin_leafs():
+        if not tree.isNodeOccupied(leaf):
+            continue
+        size = leaf.getSize()
+        center = np.asarray(leaf.getCoordinate(), dtype=np.float64)
+        width = int(round(size / resolution_m))
+        if width <= 1:
+            centers.append(center[None])
+        else:
+            offsets = (np.arange(width) - 0.5 * (width - 1)) * resolution_m
+            grid = np.stack(np.meshgrid(offsets, offsets, offsets, indexing="ij"), axis=-1).reshape(-1, 3)
+            centers.append(center + grid)
+    return np.vstack(centers) if centers else np.zeros((0, 3))
+
+
+def octree_object(octomap_binary: bytes, resolution_m: float) -> fcl.CollisionObject | None:
+    """An FCL octree of an OctoMap binary file (what `octomap.OcTree.writeBinary()` returns); None
+    when it holds no node: FCL reports an empty octree as colliding with everything.
+
+    Raises:
+        ValueError: not an OctoMap binary, or its resolution is not `resolution_m`.
+    """
+    marker = octomap_binary.find(b"data\n")
+    if not octomap_binary.startswith(b"# Octomap OcTree binary file") or marker < 0:
+        raise ValueError("octomap_binary is not an octomap binary file (missing header or 'data' line)")
+    header = octomap_binary[:marker].decode("ascii", errors="replace").split("\n")
+    fields = dict(line.split(" ", 1) for line in header if line and not line.startswith("#") and " " in line)
+    res_in_file = float(fields.get("res", "nan"))
+    if not math.isclose(res_in_file, resolution_m, rel_tol=1e-6):
+        raise ValueError(f"resolution_m {resolution_m} differs from the octree's own resolution {res_in_file}")
+    body = octomap_binary[marker + len(b"data\n"):]
+    if int(fields.get("size", "0")) == 0 or not body:
+        return None
+    # fcl.OcTree wants the data after the header as a sequence of C chars (signed: bytes > 127 overflow).
+    return fcl.CollisionObject(fcl.OcTree(resolution_m, np.frombuffer(body, dtype=np.int8).tolist()), fcl.Transform())
+
+
+def convex_shape(vertices: FloatArray, triangles: IntArray) -> fcl.Convex:
+    faces = np.hstack([np.full((len(triangles), 1), 3, dtype=np.int64), triangles]).ravel()
+    return fcl.Convex(np.ascontiguousarray(vertices, dtype=np.float64), len(triangles), faces)
+
+
+def object_geometry(obj: SceneObject, padding_m: float = 0.0) -> fcl.CollisionGeometry:
+    """FCL geometry of a scene object in its own frame, primitives grown by `padding_m` (meshes are not)."""
+    pad = padding_m
+    if obj.type == "box":
+        return fcl.Box(*(s + 2 * pad for s in obj.size_m))
+    if obj.type == "cylinder":
+        return fcl.Cylinder(obj.radius_m + pad, obj.length_m + 2 * pad)
+    if obj.type == "sphere":
+        return fcl.Sphere(obj.radius_m + pad)
+    if obj.type == "capsule":
+        return fcl.Capsule(obj.radius_m + pad, obj.length_m)
+    # A triangle soup: FCL tests surfaces, so a shape entirely inside a closed mesh is not a contact.
+    model = fcl.BVHModel()
+    model.beginModel(len(obj.vertices_m), len(obj.triangles))
+    model.addSubModel(np.ascontiguousarray(obj.vertices_m), np.ascontiguousarray(obj.triangles, dtype=np.int32))
+    model.endModel()
+    return model
+
+
+def world_aabb(obj: SceneObject, world_from_object: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """World-frame axis-aligned box (center (3,), half extents (3,)) [m] around `obj` posed at `world_from_object`."""
+    local_center, local_half = obj.local_bounds_m
+    rotation = world_from_object[:3, :3]
+    return rotation @ local_center + world_from_object[:3, 3], np.abs(rotation) @ local_half
+
+
+def sphere_box_distance(
+    centers: FloatArray, radii: FloatArray, box_center: FloatArray, box_half: FloatArray
+) -> FloatArray:
+    """(S, K) lower bound on the distance between spheres (S,) and axis-aligned boxes (K,) [m]."""
+    gap = np.maximum(np.abs(centers[:, None, :] - box_center[None, :, :]) - box_half[None, :, :], 0.0)
+    return np.sqrt(np.einsum("skj,skj->sk", gap, gap)) - radii[:, None]
