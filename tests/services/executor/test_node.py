@@ -207,9 +207,9 @@ def test_a_voxel_that_arrived_while_the_plan_was_made_is_watched(
     far = np.array([[-0.8, -0.8, 0.1]])
     publisher = declare_latched_publisher(client.session, client.keys.occupancy)
     publisher.put(_map_with_cubes(far, stamp=100.0))
-    assert client.wait_for(lambda: len(node._recent_map_wires) == 1, 5.0)
+    assert client.wait_for(lambda: node.monitor.held_maps == 1, 5.0)
     publisher.put(_map_with_cubes(np.vstack([far, hand]), stamp=101.0))
-    assert client.wait_for(lambda: len(node._recent_map_wires) == 2, 5.0)
+    assert client.wait_for(lambda: node.monitor.held_maps == 2, 5.0)
     stamp = 100.0 if planned_on == "older map" else None
     reply = client.execute(path, trajectory_id="in-flight", occupancy_stamp=stamp)
     assert isinstance(reply, ExecuteResponse), reply
@@ -230,7 +230,7 @@ def test_a_replan_waits_for_maps_that_stopped_changing(executor: tuple[ExecutorN
     publisher = declare_latched_publisher(client.session, client.keys.occupancy)
     rested_at = time.time()
     box = np.array([[0.5, y, 0.3] for y in np.arange(0.0, 0.2, 0.02)])
-    waiter = threading.Thread(target=node._wait_settled_map, args=(rested_at,), daemon=True)
+    waiter = threading.Thread(target=node.monitor.wait_settled_map, args=(rested_at,), daemon=True)
     publisher.put(_map_with_cubes(box, stamp=rested_at - 1.0))  # taken before the stop
     waiter.start()
     for count, stamp in ((3, 1.0), (6, 2.0), (6, 3.0)):  # sliding in, then at rest
