@@ -18,7 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     # name: (module whose `main(argv) -> int` runs it, help)
     "up": ("robonav.services.stack.up", "run a Zenoh router and every service until Ctrl-C"),
     "demo": ("robonav.services.stack.demo", "start everything, plan and execute the demo goals, print a JSON summary"),
-    "bench": ("robonav.services.bench.plan", "benchmarks: `robonav bench plan --problems DIR` (MotionBenchMaker), "
+    "bench": ("robonav.services.bench.cli", "benchmarks: `robonav bench plan --problems DIR` (MotionBenchMaker), "
                                         "`robonav bench executor`"),
     "plot": ("robonav.services.tools.plot", "plots: `robonav plot trajectory --json PATH_FILE -o out.png`"),
     "router": ("robonav.services.stack.router", "a Zenoh router for the services (TLS, authentication, access control "

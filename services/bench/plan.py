@@ -1,4 +1,4 @@
-"""`robonav bench`: benchmarks over third-party problem sets. `robonav bench plan` is the first.
+"""`robonav bench plan`: the planner on MotionBenchMaker problems, every path re-checked on the meshes.
 
 `robonav bench plan` runs the planner on MotionBenchMaker problems (`mbm-primitives/1` files,
 see the shared benchmarks' FORMAT.md) and counts a problem as solved only when the planner
@@ -94,9 +94,8 @@ class ProblemRecord:
         return self.returned_path and self.path_valid
 
 
-def parse_args(argv: Sequence[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="robonav bench", description="Benchmarks over third-party problem sets.")
-    kinds = parser.add_subparsers(dest="kind", required=True)
+def add_parser(kinds: Any) -> None:  # noqa: ANN401 - argparse's private subparsers type
+    """`robonav bench plan` and its options."""
     plan = kinds.add_parser(
         "plan", help="plan MotionBenchMaker problems and re-check every path on the link meshes",
         description="Plan every problem of mbm-primitives/1 files; a problem is solved only when the "
@@ -116,38 +115,9 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     plan.add_argument("--cloud-inflation", type=_non_negative_float, default=PerceptionConfig().inflation_m,
                       help="--scene cloud: occupancy inflation [m] (default: the perception default)")
     plan.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
-    from robonav.services.bench.executor import add_parser as add_executor_parser
-
-    add_executor_parser(kinds)
-    from robonav.services.bench.perception import add_parser as add_perception_parser
-
-    add_perception_parser(kinds)
-    from robonav.services.bench.record import add_parser as add_record_parser
-
-    add_record_parser(kinds)
-    return parser.parse_args(list(argv))
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of `robonav bench`; returns the exit code (2 on bad input)."""
-    args = parse_args(sys.argv[1:] if argv is None else argv)
-    # Each benchmark kind has its own sub-subcommand and function.
-    if args.kind == "record":
-        from robonav.services.bench.record import main as record_main
-
-        return record_main(args)
-    if args.kind == "perception":
-        from robonav.services.bench.perception import main as perception_main
-
-        return perception_main(args)
-    if args.kind == "executor":
-        from robonav.services.bench.executor import main as executor_main
-
-        return executor_main(args)
-    return plan_main(args)
-
-
-def plan_main(args: argparse.Namespace) -> int:
+def main(args: argparse.Namespace) -> int:
     """`robonav bench plan`: run, print the table (and unsolved problems), write the JSON."""
     try:
         sets = select(load_problem_sets(args.problems), families=args.families, limit=args.limit)
