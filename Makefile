@@ -17,6 +17,7 @@ demo: setup
 	$(VENV)/bin/robonav demo --seed 0 --json out/demo-summary.json
 
 test: setup
+	$(VENV)/bin/ruff check pipeline services calibration tests examples
 	$(PY) -m pytest
 
 setup: system-deps $(STAMP)

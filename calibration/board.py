@@ -18,7 +18,6 @@ from robonav.pipeline.config import require
 from robonav.pipeline.types import FloatArray
 
 
-
 @dataclass(frozen=True)
 class BoardSpec:
     """A ChArUco board as printed."""

@@ -27,7 +27,6 @@ from scipy.spatial.transform import Rotation
 
 from robonav.pipeline.types import FloatArray
 
-
 HAND_EYE_METHODS: dict[str, int] = {
     "tsai": cv2.CALIB_HAND_EYE_TSAI,
     "park": cv2.CALIB_HAND_EYE_PARK,

@@ -7,9 +7,9 @@ from typing import Any
 
 import numpy as np
 
-from robonav.pipeline.transforms import PoseSpec
 from robonav.calibration.hand_eye import transform_error
 from robonav.calibration.solve import MethodResult, Solution
+from robonav.pipeline.transforms import PoseSpec
 
 
 def x_name(setup: str) -> str:

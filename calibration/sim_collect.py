@@ -37,8 +37,8 @@ from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.config import require
 from robonav.pipeline.planning.ik import solve_ik
-from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.types import FloatArray
 
 MIN_VISIBLE_FRACTION = 0.75

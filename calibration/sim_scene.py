@@ -27,8 +27,8 @@ import pybullet as p
 from robonav.calibration.board import BoardSpec, board_image
 from robonav.calibration.dataset import IntrinsicsSpec
 from robonav.pipeline.camera import CameraConfig
-from robonav.pipeline.robot.model import resolve_urdf_path
 from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.model import resolve_urdf_path
 from robonav.pipeline.transforms import quat_xyzw_from_rotation
 from robonav.pipeline.types import FloatArray
 

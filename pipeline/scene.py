@@ -13,7 +13,6 @@ from robonav.pipeline.config import require
 from robonav.pipeline.transforms import make_transform, quat_xyzw_from_rotation
 from robonav.pipeline.types import FloatArray
 
-
 ObjectType = Literal["box", "cylinder", "sphere", "capsule", "mesh"]
 OBJECT_TYPES: tuple[str, ...] = ("box", "cylinder", "sphere", "capsule", "mesh")
 

@@ -15,7 +15,6 @@ from robonav.pipeline.config import require
 from robonav.pipeline.types import FloatArray
 
 
-
 def rotation_from_quat_xyzw(quat_xyzw: Sequence[float] | FloatArray) -> FloatArray:
     """3x3 rotation matrix of a quaternion given as (x, y, z, w); normalises it first.
 

@@ -13,11 +13,25 @@ from typing import TypeVar
 import numpy as np
 import zenoh
 
-from robonav.pipeline.wire.messages import (ContactsRequest, ContactsResponse, ErrorReply, ExecuteRequest, ExecuteResponse,
-                                       ExecutorStatus, JointState, Occupancy, PlanRequest, PlanResponse, SceneRequest,
-                                       SceneResponse, StopRequest, StopResponse, decode_reply)
 from robonav.pipeline.wire.codec import Message, ProtocolError
 from robonav.pipeline.wire.codes import ExecutionState
+from robonav.pipeline.wire.messages import (
+    ContactsRequest,
+    ContactsResponse,
+    ErrorReply,
+    ExecuteRequest,
+    ExecuteResponse,
+    ExecutorStatus,
+    JointState,
+    Occupancy,
+    PlanRequest,
+    PlanResponse,
+    SceneRequest,
+    SceneResponse,
+    StopRequest,
+    StopResponse,
+    decode_reply,
+)
 from robonav.services.common import declare_latched_subscriber
 from robonav.services.keys import Keys
 

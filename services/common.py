@@ -18,9 +18,9 @@ import zenoh
 import zenoh.ext
 
 from robonav.pipeline.config import ConfigError
-from robonav.pipeline.wire.messages import ErrorReply
 from robonav.pipeline.wire.codec import SCHEMA_VERSION, Message, ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
+from robonav.pipeline.wire.messages import ErrorReply
 from robonav.services.config import LimitsConfig, RobonavConfig, ZenohConfig, load_config
 from robonav.services.keys import Keys
 

@@ -24,8 +24,7 @@ import numpy.typing as npt
 from robonav.pipeline.collision.attached import AttachedObject, Attachments
 from robonav.pipeline.collision.clearance import ClearanceQueries
 from robonav.pipeline.collision.edges import bisection_order, step_count
-from robonav.pipeline.collision.fcl_shapes import (convex_shape, object_geometry, occupied_leaf_centers,
-                                                   octree_object, world_aabb)
+from robonav.pipeline.collision.fcl_shapes import convex_shape, object_geometry, occupied_leaf_centers, octree_object, world_aabb
 from robonav.pipeline.collision.sphere_first import SphereFirstChecks
 from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
 from robonav.pipeline.robot.link_geometry import grow_hull

@@ -21,8 +21,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.evaluation.surface_sampling import sample_object_surfaces
+from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
 

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import fcl
 import numpy as np
 
-from robonav.pipeline.robot.link_geometry import LinkShape
 from robonav.pipeline.planning.metrics import as_path, interpolate_path
+from robonav.pipeline.robot.link_geometry import LinkShape
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray

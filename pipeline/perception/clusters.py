@@ -19,7 +19,6 @@ import scipy.ndimage as ndi
 from robonav.pipeline.types import FloatArray, IntArray
 
 
-
 @dataclass(frozen=True)
 class ClusterSet:
     """K clusters; arrays are indexed by cluster."""

@@ -16,7 +16,6 @@ import open3d as o3d
 from robonav.pipeline.types import BoolArray, FloatArray
 
 
-
 def validate_points(points: npt.ArrayLike, name: str, *, allow_non_finite: bool = False) -> FloatArray:
     """Return `points` as a C-contiguous (N, 3) float64 array, or raise.
 

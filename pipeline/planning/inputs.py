@@ -7,7 +7,6 @@ import numpy as np
 from robonav.pipeline.types import FloatArray
 
 
-
 def joint_vector(value: FloatArray, label: str, n: int | None = None) -> FloatArray:
     """`value` as a finite (n,) float array, or ValueError naming `label` and the bad index."""
     arr = np.asarray(value, dtype=np.float64)

@@ -9,7 +9,6 @@ import numpy as np
 from robonav.pipeline.types import FloatArray
 
 
-
 def as_path(path: FloatArray, label: str = "path") -> FloatArray:
     """`path` as a (K, n) float64 array with K >= 1 finite rows.
 

@@ -18,12 +18,12 @@ from typing import Any, Literal
 import numpy as np
 
 from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.planning.baselines.lattice import plan_lattice
+from robonav.pipeline.planning.baselines.potential_field import PotentialFieldConfig, plan_potential_field
 from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.planning.ik import IkStatus, solve_ik
-from robonav.pipeline.planning.baselines.lattice import plan_lattice
 from robonav.pipeline.planning.metrics import interpolate_path, max_joint_step_rad, path_length_rad
 from robonav.pipeline.planning.ompl_planners import PLANNER_CLASSES, JointSpaceProblem, OmplSpace, race
-from robonav.pipeline.planning.baselines.potential_field import PotentialFieldConfig, plan_potential_field
 from robonav.pipeline.planning.result import PlanResult, PlanStatus
 from robonav.pipeline.planning.shortcut import shortcut_path
 from robonav.pipeline.planning.start_escape import escape_start

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 from robonav.pipeline.types import FloatArray
 
 
-
 class PlanStatus(enum.Enum):
     """Expected planning outcomes; bad input raises ValueError instead."""
 

@@ -22,7 +22,6 @@ padding away from every seen voxel. Judged on the inflated map, such starts stay
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from robonav.pipeline.collision.world import OCCUPANCY, CollisionWorld

@@ -24,7 +24,6 @@ import pinocchio as pin
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.types import FloatArray, IntArray
 
-
 REVOLUTE = 0
 PRISMATIC = 1
 
@@ -346,8 +345,9 @@ def link_pose_from_lane(frames: FloatArray, j: int, li: int, rotation: FloatArra
 
 
 @nb.njit(cache=True, nogil=True)
-def _link_poses(qs, parent, joint_type, q_slot, coefficients, base_joint, joint_from_base, link_joint,
-                joint_from_link_rotation, joint_from_link_translation, out) -> None:  # pragma: no cover (compiled)
+def _link_poses(qs: FloatArray, parent: IntArray, joint_type: IntArray, q_slot: IntArray, coefficients: FloatArray,
+                base_joint: int, joint_from_base: FloatArray, link_joint: IntArray, joint_from_link_rotation: FloatArray,
+                joint_from_link_translation: FloatArray, out: FloatArray) -> None:  # pragma: no cover (compiled)
     count, dof = qs.shape
     cos_lanes, sin_lanes, q_lanes = np.empty((dof, count)), np.empty((dof, count)), np.empty((dof, count))
     for w in range(count):

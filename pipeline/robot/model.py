@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from robonav.pipeline.robot.link_geometry import LinkShape, convex_hull, parse_collision_shapes
 from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.link_geometry import LinkShape, convex_hull, parse_collision_shapes
 from robonav.pipeline.types import FloatArray
 
 PYBULLET_DATA_PREFIX = "pybullet_data:"
@@ -222,12 +222,12 @@ class RobotModel:
     def link_poses(self, q: FloatArray) -> dict[str, FloatArray]:
         """world_from_link (4, 4) of every checked link with collision geometry at `q` (dof,)."""
         self._forward(self.validate_q(q))
-        oMf = self._data.oMf
+        root_from_frame = self._data.oMf  # Pinocchio: pose of each frame in its root (o)
         if self._root_is_world:
             # The common case (base link = URDF root) skips 11 matrix products per call.
-            return {name: oMf[fid].homogeneous for name, fid in self._frame_ids.items()}
+            return {name: root_from_frame[fid].homogeneous for name, fid in self._frame_ids.items()}
         world_from_root = self._world_from_root()
-        return {name: world_from_root @ oMf[fid].homogeneous for name, fid in self._frame_ids.items()}
+        return {name: world_from_root @ root_from_frame[fid].homogeneous for name, fid in self._frame_ids.items()}
 
     def link_pose_stack(self, q: FloatArray) -> FloatArray:
         """world_from_link (L, 4, 4) of the checked links in `collision_link_names` order at `q` (dof,).
@@ -235,8 +235,8 @@ class RobotModel:
         The array form of `link_poses`, for callers that index links by position.
         """
         self._forward(self.validate_q(q))
-        oMf = self._data.oMf
-        stack = np.array([oMf[fid].homogeneous for fid in self._frame_id_list]).reshape(-1, 4, 4)
+        root_from_frame = self._data.oMf  # Pinocchio: pose of each frame in its root (o)
+        stack = np.array([root_from_frame[fid].homogeneous for fid in self._frame_id_list]).reshape(-1, 4, 4)
         return stack if self._root_is_world else self._world_from_root() @ stack
 
     def frame_pose(self, q: FloatArray, link_name: str) -> FloatArray:

@@ -13,8 +13,16 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from robonav.pipeline.trajectory.trajectory import (JointPiece, JointTrajectory, Piece, TrajectoryLimits,
-                                                    line_piece, piece_samples, ruckig_piece, validate_joint_vector)
+from robonav.pipeline.trajectory.trajectory import (
+    JointPiece,
+    JointTrajectory,
+    Piece,
+    TrajectoryLimits,
+    line_piece,
+    piece_samples,
+    ruckig_piece,
+    validate_joint_vector,
+)
 from robonav.pipeline.types import FloatArray
 
 _SHRINK_FACTOR = 0.6

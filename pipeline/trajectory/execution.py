@@ -15,18 +15,18 @@ current commanded state, so position, velocity and acceleration stay continuous.
 from __future__ import annotations
 
 import collections
-
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
+from robonav.pipeline.trajectory.blending import blend_from_state
 from robonav.pipeline.trajectory.config import ExecutorConfig
 from robonav.pipeline.trajectory.stopping import stop_trajectory
-from robonav.pipeline.trajectory.blending import blend_from_state
 from robonav.pipeline.trajectory.trajectory import JointTrajectory, TrajectoryLimits
 from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire.codes import ErrorCode, ExecutionResult, ExecutionState
+
 
 class SampledTrajectory(Protocol):
     @property

@@ -18,10 +18,10 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
+from robonav.pipeline.collision.spheres.sphere_model import robot_sphere_model
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.collision.spheres.sphere_model import robot_sphere_model
 from robonav.pipeline.types import FloatArray
 
 

@@ -29,8 +29,13 @@ import numpy as np
 import numpy.typing as npt
 
 from robonav.pipeline.trajectory.blending import Corners
-from robonav.pipeline.trajectory.trajectory import (HoldPiece, JointTrajectory, TrajectoryLimits, piece_valid,
-                                                    validate_joint_vector)
+from robonav.pipeline.trajectory.trajectory import (
+    HoldPiece,
+    JointTrajectory,
+    TrajectoryLimits,
+    piece_valid,
+    validate_joint_vector,
+)
 from robonav.pipeline.types import FloatArray, StateValidFn
 
 _DUPLICATE_WAYPOINT_TOL = 1e-9

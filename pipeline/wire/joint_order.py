@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 from collections.abc import Sequence
+
+import numpy as np
 
 from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire.codec import ProtocolError

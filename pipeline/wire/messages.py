@@ -16,7 +16,6 @@ from robonav.pipeline.wire.codec import Message, ProtocolError, array_field, unp
 from robonav.pipeline.wire.codes import ErrorCode, ExecutionResult, ExecutionState
 
 
-
 def _check_same_length(owner: str, names: tuple[str, ...], **arrays: np.ndarray | None) -> None:
     for key, array in arrays.items():
         if array is not None and array.shape[-1] != len(names):

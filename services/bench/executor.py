@@ -39,12 +39,12 @@ import numpy as np
 import yaml
 
 from robonav.pipeline.collision.world import CollisionWorld
-from robonav.pipeline.wire.messages import JointState, Setpoint
-from robonav.pipeline.wire.codes import ErrorCode
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import intruder_for_trajectory
-from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.trajectory.timing import time_parameterize
+from robonav.pipeline.wire.codes import ErrorCode
+from robonav.pipeline.wire.messages import JointState, Setpoint
 from robonav.services.bench.reference_loop import run_reference_loop, shared_misses
 from robonav.services.config import RobonavConfig, ZenohConfig, default_config_path, load_config
 
@@ -131,8 +131,8 @@ def publish_depth_frames(endpoint: str, config_path: str | None, rate_hz: float,
     With `box_m`, a second frame with a 10 cm box centered there is rendered too and published
     instead while `box_on` is set; `box_since` gets the wall time of its first publication.
     """
-    from robonav.pipeline.wire.messages import DepthImage
     from robonav.pipeline.sim.world import SimWorld
+    from robonav.pipeline.wire.messages import DepthImage
     from robonav.services.common import open_session
     from robonav.services.keys import Keys
 
@@ -210,11 +210,11 @@ def _executor_process(cfg: RobonavConfig, keep_times: int, conn: Any) -> None:  
 def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: int, *,
                   perception_hz: float = 0.0, config_path: str | None = None, drops: int = 0,
                   reference_loop: bool = False) -> dict[str, Any]:
+    import socket
+
     from robonav.services.client import RobonavClient
     from robonav.services.common import open_session
-
     from robonav.services.keys import Keys
-    import socket
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

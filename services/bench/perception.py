@@ -29,7 +29,6 @@ from typing import Any
 import numpy as np
 import yaml
 
-from robonav.pipeline.wire.messages import JointState, Occupancy, PointCloud
 from robonav.pipeline.evaluation.map_accuracy import map_accuracy
 from robonav.pipeline.perception.clusters import cluster_voxels
 from robonav.pipeline.perception.depth import points_from_depth
@@ -39,6 +38,7 @@ from robonav.pipeline.perception.self_filter import perception_filters
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.sim.noise import apply_depth_noise
 from robonav.pipeline.sim.world import SimWorld
+from robonav.pipeline.wire.messages import JointState, Occupancy, PointCloud
 from robonav.services.common import open_session
 from robonav.services.config import RobonavConfig, ZenohConfig, default_config_path, load_config
 from robonav.services.keys import Keys

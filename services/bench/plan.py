@@ -30,12 +30,12 @@ from typing import Any, Literal, TextIO
 import numpy as np
 
 from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.evaluation.mbm import MbmProblem, MbmProblemSet, mbm_robot_config, parse_mbm
 from robonav.pipeline.evaluation.mesh_check import FINE_STEP_RAD, MeshCollisionChecker
+from robonav.pipeline.evaluation.surface_sampling import sample_object_surfaces
 from robonav.pipeline.perception.config import PerceptionConfig
 from robonav.pipeline.perception.maps.octree import OccupancyMap
-from robonav.pipeline.evaluation.surface_sampling import sample_object_surfaces
 from robonav.pipeline.planning.config import PlannerConfig
-from robonav.pipeline.evaluation.mbm import MbmProblem, MbmProblemSet, mbm_robot_config, parse_mbm
 from robonav.pipeline.planning.metrics import path_length_rad
 from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
 from robonav.pipeline.planning.ompl_planners import seed_ompl_once

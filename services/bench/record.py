@@ -36,8 +36,8 @@ import yaml
 import zenoh
 
 from robonav.pipeline.camera import CameraConfig
-from robonav.pipeline.wire.messages import JointState, PointCloud
 from robonav.pipeline.perception.depth import points_from_depth
+from robonav.pipeline.wire.messages import JointState, PointCloud
 from robonav.services.common import open_session, setup_logging
 from robonav.services.config import RobonavConfig, ZenohConfig, default_config_path, load_config
 from robonav.services.recording.files import Recording

@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 
 from robonav.pipeline.camera import CameraConfig
-from robonav.pipeline.wire.messages import JointState, PointCloud
 from robonav.pipeline.perception.depth import points_from_depth
+from robonav.pipeline.wire.messages import JointState, PointCloud
 from robonav.services.common import open_session, setup_logging
 from robonav.services.config import ZenohConfig, load_config
 from robonav.services.keys import Keys

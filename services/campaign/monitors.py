@@ -8,9 +8,8 @@ import time
 import numpy as np
 import zenoh
 
-
-from robonav.pipeline.wire.messages import ContactEvent, Occupancy, Setpoint
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.wire.messages import ContactEvent, Occupancy, Setpoint
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
 

@@ -36,10 +36,10 @@ import zenoh
 from tqdm import tqdm
 
 from robonav.pipeline.config import ConfigError
-from robonav.pipeline.wire.messages import ErrorReply, SimStatsRequest, SimStatsResponse
 from robonav.pipeline.evaluation.mbm import parse_mbm
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.sim.scenes import Scene, clutter_scene, mbm_scenes, scene_from_mapping
+from robonav.pipeline.wire.messages import ErrorReply, SimStatsRequest, SimStatsResponse
 from robonav.services.campaign.monitors import Monitors
 from robonav.services.campaign.scene import MOVING_SPEED_FACTOR, SceneRunner
 from robonav.services.client import QueryFailed, RobonavClient

@@ -16,17 +16,25 @@ from typing import Any
 import numpy as np
 
 from robonav.pipeline.collision.world import CollisionWorld
-from robonav.pipeline.wire.messages import (ErrorReply, ExecuteResponse, ObjectMotionSpec, Occupancy,
-                                       PerceptionClearRequest, PerceptionClearResponse, PlanResponse, SimObjectsRequest,
-                                       SimObjectsResponse)
 from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanOutcome, PlanProblem
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import Intruder, perceivable_objects, sample_goal
-from robonav.pipeline.trajectory.path_guard import PathGuard, map_settled
 from robonav.pipeline.sim.scenes import Scene
+from robonav.pipeline.trajectory.path_guard import PathGuard, map_settled
 from robonav.pipeline.wire.codes import ErrorCode, ExecutionState
+from robonav.pipeline.wire.messages import (
+    ErrorReply,
+    ExecuteResponse,
+    ObjectMotionSpec,
+    Occupancy,
+    PerceptionClearRequest,
+    PerceptionClearResponse,
+    PlanResponse,
+    SimObjectsRequest,
+    SimObjectsResponse,
+)
 from robonav.services.campaign.intruder import INTRUDER_SLIDE_S, IntruderPlacer
 from robonav.services.client import QueryFailed, RobonavClient, trajectory_outcome
 from robonav.services.config import RobonavConfig

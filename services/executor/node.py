@@ -23,22 +23,36 @@ import uuid
 import numpy as np
 import zenoh
 
-from robonav.pipeline.wire.joint_order import positions_by_name, reorder_to_robot
-from robonav.pipeline.wire.messages import (ExecuteRequest, ExecuteResponse, ExecutorPath, ExecutorStatus,
-                                       JointState, StopRequest,
-                                       StopResponse)
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.trajectory.execution import ExecutionStateMachine, Limits
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.pipeline.trajectory.trajectory import JointTrajectory
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
-from robonav.services.common import (Node, declare_latched_publisher, declare_latched_subscriber, guarded_queryable,
-                                     guarded_subscriber, decode_request, reply_ok, run_service)
+from robonav.pipeline.wire.joint_order import positions_by_name, reorder_to_robot
+from robonav.pipeline.wire.messages import (
+    ExecuteRequest,
+    ExecuteResponse,
+    ExecutorPath,
+    ExecutorStatus,
+    JointState,
+    StopRequest,
+    StopResponse,
+)
+from robonav.services.common import (
+    Node,
+    declare_latched_publisher,
+    declare_latched_subscriber,
+    decode_request,
+    guarded_queryable,
+    guarded_subscriber,
+    reply_ok,
+    run_service,
+)
 from robonav.services.config import RobonavConfig
-from robonav.services.keys import Keys
 from robonav.services.executor.path_monitor import Execution, PathMonitor
 from robonav.services.executor.setpoint_stream import SetpointStream, StreamStats
+from robonav.services.keys import Keys
 
 log = logging.getLogger("robonav.executor")
 

@@ -233,9 +233,10 @@ class _Loop:
         self.conn.send(StreamStats(self.published, tuple(self.late_s), self.starved, self.times[:kept].copy()))
 
     def run(self) -> None:
+        import zenoh
+
         from robonav.pipeline.wire.messages import Setpoint
         from robonav.services.common import to_zenoh_config
-        import zenoh
 
         spec = self.spec
         try:

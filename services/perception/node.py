@@ -17,6 +17,12 @@ import time
 import numpy as np
 import zenoh
 
+from robonav.pipeline.perception.clusters import cluster_voxels
+from robonav.pipeline.perception.maps.factory import make_occupancy_map
+from robonav.pipeline.perception.maps.protocol import CameraFrame, FrameRejected
+from robonav.pipeline.perception.self_filter import perception_filters
+from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name
 from robonav.pipeline.wire.messages import (
     Clusters,
     DepthImage,
@@ -28,12 +34,6 @@ from robonav.pipeline.wire.messages import (
     PerceptionStatusResponse,
     PointCloud,
 )
-from robonav.pipeline.perception.clusters import cluster_voxels
-from robonav.pipeline.perception.maps.factory import make_occupancy_map
-from robonav.pipeline.perception.maps.protocol import CameraFrame, FrameRejected
-from robonav.pipeline.perception.self_filter import perception_filters
-from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name
 from robonav.services.common import (
     Node,
     declare_latched_publisher,

@@ -14,8 +14,6 @@ import numpy as np
 import zenoh
 
 from robonav.pipeline.collision.world import CollisionWorld
-from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name, reorder_to_robot
-from robonav.pipeline.wire.messages import JointState, Occupancy, PlanRequest, PlanResponse
 from robonav.pipeline.planning.motion_planner import PLANNERS, MotionPlanner, PlanProblem, PoseGoal
 from robonav.pipeline.planning.ompl_planners import seed_ompl_once
 from robonav.pipeline.planning.result import PlanStatus
@@ -23,8 +21,18 @@ from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.transforms import make_transform
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
-from robonav.services.common import (Node, declare_latched_subscriber, guarded_queryable, guarded_subscriber, decode_request, reply_error,
-                                     reply_ok, run_service)
+from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name, reorder_to_robot
+from robonav.pipeline.wire.messages import JointState, Occupancy, PlanRequest, PlanResponse
+from robonav.services.common import (
+    Node,
+    declare_latched_subscriber,
+    decode_request,
+    guarded_queryable,
+    guarded_subscriber,
+    reply_error,
+    reply_ok,
+    run_service,
+)
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
 from robonav.services.planner.scene import PlanningScene

@@ -18,12 +18,12 @@ import numpy as np
 import zenoh
 
 from robonav.pipeline.collision.world import CollisionWorld
-from robonav.pipeline.wire.joint_order import reorder_to_robot
-from robonav.pipeline.wire.messages import SceneObjectSpec, SceneRequest, SceneResponse
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
+from robonav.pipeline.wire.joint_order import reorder_to_robot
+from robonav.pipeline.wire.messages import SceneObjectSpec, SceneRequest, SceneResponse
 from robonav.services.common import decode_request, reply_ok
 from robonav.services.planner.scene_specs import checked, invalid_request, object_state, scene_object
 

@@ -9,10 +9,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TypeVar
 
-from robonav.pipeline.wire.messages import SceneObjectSpec, SceneObjectState
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
+from robonav.pipeline.wire.messages import SceneObjectSpec, SceneObjectState
 
 T = TypeVar("T")
 

@@ -21,8 +21,8 @@ from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud as FoxglovePointCloud
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 
-from robonav.pipeline.wire.messages import ExecutorStatus, JointState, Occupancy, PointCloud, Setpoint
 from robonav.pipeline.wire.codec import Message
+from robonav.pipeline.wire.messages import ExecutorStatus, JointState, Occupancy, PointCloud, Setpoint
 
 MSGPACK_ENCODING = "msgpack"
 JSONSCHEMA_ENCODING = "jsonschema"

@@ -20,13 +20,21 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from robonav.pipeline.wire.joint_order import reorder_to_robot
-from robonav.pipeline.wire.messages import (ContactEvent, ContactsRequest, ContactsResponse, ExecutorStatus, JointState,
-                                       Setpoint, SimObjectsRequest, SimStatsRequest)
 from robonav.pipeline.sim.motion import MotionScript
 from robonav.pipeline.sim.world import SimWorld
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
+from robonav.pipeline.wire.joint_order import reorder_to_robot
+from robonav.pipeline.wire.messages import (
+    ContactEvent,
+    ContactsRequest,
+    ContactsResponse,
+    ExecutorStatus,
+    JointState,
+    Setpoint,
+    SimObjectsRequest,
+    SimStatsRequest,
+)
 from robonav.services.common import Node, decode_request, guarded_queryable, guarded_subscriber, reply_ok, run_service
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys

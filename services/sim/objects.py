@@ -10,10 +10,11 @@ import time
 
 import numpy as np
 
-from robonav.pipeline.wire.messages import ObjectMotionSpec, SimObjectsRequest, SimObjectsResponse
 from robonav.pipeline.sim.motion import MotionScript, ObjectMotion, Pose
 from robonav.pipeline.sim.world import SimWorld
+from robonav.pipeline.wire.messages import ObjectMotionSpec, SimObjectsRequest, SimObjectsResponse
 from robonav.services.planner.scene_specs import checked, invalid_request, object_spec, object_state, scene_object
+
 
 def object_motion(spec: ObjectMotionSpec, key: str) -> ObjectMotion:
     obj = None if spec.object is None else scene_object(spec.object, f"{key}.object")

@@ -16,20 +16,20 @@ from __future__ import annotations
 
 import heapq
 import logging
-import os
 import multiprocessing
 import multiprocessing.connection
+import os
 import signal
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from robonav.pipeline.wire.messages import DepthImage, PointCloud
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.sensor import labelled_cloud, sensor_frame
 from robonav.pipeline.sim.world import SimWorld
+from robonav.pipeline.wire.messages import DepthImage, PointCloud
 from robonav.services.common import open_session, setup_logging
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys

@@ -19,8 +19,8 @@ import yaml
 
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.config import ConfigError
-from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, PlanResponse
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, PlanResponse
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.common import open_session, setup_logging, stop_on_signals
 from robonav.services.config import RobonavConfig, default_config_path, load_config

@@ -18,11 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from robonav.pipeline.wire.joint_order import reorder_to_robot
-from robonav.pipeline.wire.messages import Setpoint
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.pipeline.trajectory.trajectory import TrajectoryLimits
+from robonav.pipeline.wire.joint_order import reorder_to_robot
+from robonav.pipeline.wire.messages import Setpoint
 from robonav.services.config import RobonavConfig, load_config
 from robonav.services.recording.files import Recording, RecordingError
 

@@ -23,10 +23,10 @@ import numpy as np
 import zenoh
 
 from robonav.pipeline.config import ConfigError, require
-from robonav.pipeline.wire.messages import ExecutorPath, PointCloud
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.transforms import transform_points
 from robonav.pipeline.types import FloatArray
+from robonav.pipeline.wire.messages import ExecutorPath, PointCloud
 from robonav.services.client import RobonavClient
 from robonav.services.common import declare_latched_subscriber, open_session, setup_logging, stop_on_signals
 from robonav.services.config import RobonavConfig, load_config, perceived_world_from_camera

@@ -19,9 +19,9 @@ from robonav.calibration.dataset import (
     save_dataset,
 )
 from robonav.pipeline.camera import CameraExtrinsics
-from robonav.services.config import read_extrinsics, write_extrinsics
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.transforms import PoseSpec
+from robonav.services.config import read_extrinsics, write_extrinsics
 
 
 def _dataset() -> Dataset:

@@ -18,12 +18,11 @@ import yaml
 from robonav.calibration import cli
 from robonav.calibration.board import BoardSpec, board_corners_m, detect_board
 from robonav.calibration.dataset import IntrinsicsSpec, load_dataset
-from robonav.services.config import read_extrinsics
 from robonav.calibration.hand_eye import invert, transform_error
 from robonav.calibration.sim_collect import ee_from_board_mount
 from robonav.calibration.sim_scene import CalibrationScene, camera_intrinsics
 from robonav.pipeline.transforms import look_at_quat_xyzw, make_transform
-from robonav.services.config import default_config_path, load_config, perceived_world_from_camera
+from robonav.services.config import default_config_path, load_config, perceived_world_from_camera, read_extrinsics
 
 CONFIG = load_config()
 SMALL = ["--views", "8", "--width", "640", "--height", "480", "--supersample", "2", "--seed", "1"]

@@ -32,12 +32,12 @@ from scipy.ndimage import distance_transform_edt
 from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE
 from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld, edge_suspect_steps, state_suspect_lanes
 from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, suspect_pairs_of_state
+from robonav.pipeline.collision.spheres.self_pair_tables import SelfPairTables, build_self_pair_tables
+from robonav.pipeline.collision.spheres.sphere_model import RobotSphereModel, robot_sphere_model
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
 from robonav.pipeline.robot.link_geometry import grow_hull
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.collision.spheres.self_pair_tables import SelfPairTables, build_self_pair_tables
-from robonav.pipeline.collision.spheres.sphere_model import RobotSphereModel, robot_sphere_model
 from robonav.pipeline.types import FloatArray
 
 _MAX_GRID_CELLS = 60_000_000

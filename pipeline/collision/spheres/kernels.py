@@ -11,6 +11,7 @@ import math
 
 import numba as nb
 
+from robonav.pipeline.types import BoolArray, FloatArray, IntArray
 
 BOX, SPHERE, CYLINDER, CAPSULE = 0, 1, 2, 3
 CONTACT_EPS_M = 1e-9
@@ -37,7 +38,8 @@ def _primitive_distance(px: float, py: float, pz: float, kind: int, p0: float, p
 
 
 @nb.njit(cache=True, inline="always")
-def object_distance(x: float, y: float, z: float, k: int, kind, rotation, translation, param) -> float:
+def object_distance(x: float, y: float, z: float, k: int, kind: IntArray, rotation: FloatArray, translation: FloatArray,
+                    param: FloatArray) -> float:
     dx, dy, dz = x - translation[k, 0], y - translation[k, 1], z - translation[k, 2]
     px = rotation[k, 0, 0] * dx + rotation[k, 1, 0] * dy + rotation[k, 2, 0] * dz
     py = rotation[k, 0, 1] * dx + rotation[k, 1, 1] * dy + rotation[k, 2, 1] * dz
@@ -46,7 +48,7 @@ def object_distance(x: float, y: float, z: float, k: int, kind, rotation, transl
 
 
 @nb.njit(cache=True, inline="always")
-def voxel_distance(x: float, y: float, z: float, grid, origin, voxel: float, box) -> float:
+def voxel_distance(x: float, y: float, z: float, grid: FloatArray, origin: FloatArray, voxel: float, box: FloatArray) -> float:
     """Lower bound on the distance from a point to the occupied cubes [m]."""
     fx, fy, fz = (x - origin[0]) / voxel, (y - origin[1]) / voxel, (z - origin[2]) / voxel
     i, j, k = int(math.floor(fx + 0.5)), int(math.floor(fy + 0.5)), int(math.floor(fz + 0.5))
@@ -60,7 +62,8 @@ def voxel_distance(x: float, y: float, z: float, grid, origin, voxel: float, box
 
 
 @nb.njit(cache=True, inline="always")
-def touches_voxels(x: float, y: float, z: float, radius: float, occupied, origin, voxel: float) -> bool:
+def touches_voxels(x: float, y: float, z: float, radius: float, occupied: BoolArray, origin: FloatArray,
+                   voxel: float) -> bool:
     """Whether the sphere touches an occupied cube: exact point-to-cube distances over the cells
     its bounding box overlaps.
 

@@ -34,8 +34,9 @@ from robonav.pipeline.collision.spheres.kernels import (
     touches_voxels,
     voxel_distance,
 )
-from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes
 from robonav.pipeline.collision.spheres.self_pair_tables import ROUNDING_GUARD_M
+from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes
+from robonav.pipeline.types import BoolArray, FloatArray, IntArray
 
 LANES = 16
 """States checked together (measured on MBM edges, per state: 4 lanes 0.87 us, 8 0.67, 16 0.59)."""
@@ -87,8 +88,8 @@ structref.define_boxing(LaneWorldType, LaneWorld)
 
 
 @nb.njit(cache=True, inline="always")
-def object_distance_lanes(n: int, points, row: int, k: int, kind, rotation, translation, param,
-                           out) -> None:  # pragma: no cover (compiled)
+def object_distance_lanes(n: int, points: FloatArray, row: int, k: int, kind: IntArray, rotation: FloatArray,
+                          translation: FloatArray, param: FloatArray, out: FloatArray) -> None:  # pragma: no cover (compiled)
     """out[w] = signed distance from points[row, :, w] to object k [m], for the n lanes."""
     ox, oy, oz = translation[k, 0], translation[k, 1], translation[k, 2]
     r00, r01, r02 = rotation[k, 0, 0], rotation[k, 0, 1], rotation[k, 0, 2]
@@ -130,7 +131,7 @@ def object_distance_lanes(n: int, points, row: int, k: int, kind, rotation, tran
 
 
 @nb.njit(cache=True, inline="always")
-def _any_within(n: int, distance, limit: float) -> bool:  # pragma: no cover (compiled)
+def _any_within(n: int, distance: FloatArray, limit: float) -> bool:  # pragma: no cover (compiled)
     hit = False
     for w in range(n):
         hit |= distance[w] <= limit
@@ -138,13 +139,14 @@ def _any_within(n: int, distance, limit: float) -> bool:  # pragma: no cover (co
 
 
 @nb.njit(cache=True, inline="always")
-def _flag_within(n: int, distance, limit: float, flags) -> None:  # pragma: no cover (compiled)
+def _flag_within(n: int, distance: FloatArray, limit: float, flags: BoolArray) -> None:  # pragma: no cover (compiled)
     for w in range(n):
         flags[w] |= distance[w] <= limit
 
 
 @nb.njit(cache=True, inline="always")
-def points_within(n: int, points_a, i: int, points_b, j: int, reach: float, out) -> bool:  # pragma: no cover
+def points_within(n: int, points_a: FloatArray, i: int, points_b: FloatArray, j: int, reach: float,
+                  out: BoolArray) -> bool:  # pragma: no cover
     """out[w] = points_a[i, :, w] and points_b[j, :, w] are within `reach` (+ contact epsilon); any of them."""
     r = reach + CONTACT_EPS_M
     r2 = r * r
@@ -160,7 +162,8 @@ def points_within(n: int, points_a, i: int, points_b, j: int, reach: float, out)
 
 
 @nb.njit(cache=True, inline="always")
-def _pair_clear(n: int, p: int, q_lanes, offset, slot, low, step, count, gap) -> bool:  # pragma: no cover
+def _pair_clear(n: int, p: int, q_lanes: FloatArray, offset: IntArray, slot: IntArray, low: FloatArray, step: FloatArray,
+                count: IntArray, gap: FloatArray) -> bool:  # pragma: no cover
     """Whether self pair p's table proves its spheres apart in every lane (`self_pair_tables`)."""
     if offset[p] < 0:
         return False
@@ -179,7 +182,7 @@ def _pair_clear(n: int, p: int, q_lanes, offset, slot, low, step, count, gap) ->
 
 
 @nb.njit(cache=True, inline="always")
-def _all_set(n: int, flags) -> bool:  # pragma: no cover (compiled)
+def _all_set(n: int, flags: BoolArray) -> bool:  # pragma: no cover (compiled)
     done = True
     for w in range(n):
         done &= flags[w]
@@ -187,7 +190,8 @@ def _all_set(n: int, flags) -> bool:  # pragma: no cover (compiled)
 
 
 @nb.njit(cache=True, inline="always")
-def place_lanes(n: int, frames, joint: int, centers_joint, first: int, end: int, out) -> None:  # pragma: no cover
+def place_lanes(n: int, frames: FloatArray, joint: int, centers_joint: FloatArray, first: int, end: int,
+                out: FloatArray) -> None:  # pragma: no cover
     """out[s, :, w] = world position of centers_joint[s] (joint frame) for s in [first, end)."""
     for s in range(first, end):
         cx, cy, cz = centers_joint[s, 0], centers_joint[s, 1], centers_joint[s, 2]
@@ -198,8 +202,8 @@ def place_lanes(n: int, frames, joint: int, centers_joint, first: int, end: int,
 
 
 @nb.njit(cache=True, inline="always")
-def _ensure_placed(n: int, li: int, placed, frames, link_joint, centers_joint, link_start,
-                   sphere_lanes) -> None:  # pragma: no cover (compiled)
+def _ensure_placed(n: int, li: int, placed: BoolArray, frames: FloatArray, link_joint: IntArray, centers_joint: FloatArray,
+                   link_start: IntArray, sphere_lanes: FloatArray) -> None:  # pragma: no cover (compiled)
     # Spheres are placed per link on first need: a link whose bound touches nothing needs none.
     if not placed[li]:
         place_lanes(n, frames, link_joint[li], centers_joint, link_start[li], link_start[li + 1], sphere_lanes)
@@ -342,7 +346,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
 
 
 @nb.njit(cache=True)
-def state_suspect_lanes(q, world: LaneWorld) -> bool:  # pragma: no cover (compiled)
+def state_suspect_lanes(q: FloatArray, world: LaneWorld) -> bool:  # pragma: no cover (compiled)
     """Whether any sphere at the one state `q` (dof,) is within contact (lane 0 alone)."""
     cos_lanes, sin_lanes, q_lanes = world.cos_lanes, world.sin_lanes, world.q_lanes
     for j in range(q.shape[0]):
@@ -352,7 +356,8 @@ def state_suspect_lanes(q, world: LaneWorld) -> bool:  # pragma: no cover (compi
 
 
 @nb.njit(cache=True)
-def edge_suspect_steps(a, b, resolution, first_only, out, queue, world: LaneWorld) -> tuple[int, int]:  # pragma: no cover
+def edge_suspect_steps(a: FloatArray, b: FloatArray, resolution: float, first_only: bool, out: IntArray, queue: IntArray,
+                       world: LaneWorld) -> tuple[int, int]:  # pragma: no cover
     """(count of suspects written to `out`, steps), or (-1, steps) when `out` and `queue` have
     fewer than 2 * steps + 2 rows. See `SphereBroadPhase.edge_suspects`."""
     dof = a.shape[0]

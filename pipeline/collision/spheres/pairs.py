@@ -15,11 +15,12 @@ import numba as nb
 from robonav.pipeline.collision.spheres.kernels import CONTACT_EPS_M, touches_voxels, voxel_distance
 from robonav.pipeline.collision.spheres.lanes import LaneWorld, object_distance_lanes, place_lanes, points_within
 from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes, link_pose_from_lane
+from robonav.pipeline.types import BoolArray, FloatArray
 
 
 @nb.njit(cache=True, fastmath={"contract"})
-def suspect_pairs_of_state(q, world: LaneWorld, object_flags, voxel_flags, self_flags,
-                           world_from_link) -> None:  # pragma: no cover (compiled)
+def suspect_pairs_of_state(q: FloatArray, world: LaneWorld, object_flags: BoolArray, voxel_flags: BoolArray,
+                           self_flags: BoolArray, world_from_link: FloatArray) -> None:  # pragma: no cover (compiled)
     """Which pairs' spheres are within contact at the one state `q` (dof,), and the link poses.
 
     The pairs FCL must look at, and no others: spheres that touch nothing clear their link.
@@ -86,7 +87,7 @@ def suspect_pairs_of_state(q, world: LaneWorld, object_flags, voxel_flags, self_
 
 
 @nb.njit(cache=True)
-def clearance_pair_bounds(states, world: LaneWorld, bounds, world_from_link) -> None:  # pragma: no cover (compiled)
+def clearance_pair_bounds(states: FloatArray, world: LaneWorld, bounds: FloatArray, world_from_link: FloatArray) -> None:  # pragma: no cover (compiled)
     """Lower bounds on the distance between each bare collision link and each obstacle, per state.
 
     The bare spheres contain the bare hulls, so a link is no closer to an obstacle than its

@@ -27,7 +27,6 @@ import numpy as np
 from robonav.pipeline.robot.lane_kinematics import REVOLUTE, LinkKinematics
 from robonav.pipeline.types import FloatArray, IntArray
 
-
 MAX_CHAIN_JOINTS = 3
 """Pairs separated by more joints get no table. Grids cover two joints; a third is swept (a 3-D
 grid fine enough would cost seconds to build)."""

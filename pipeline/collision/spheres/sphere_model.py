@@ -28,7 +28,6 @@ from scipy.spatial import ConvexHull, HalfspaceIntersection
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.types import FloatArray, IntArray
 
-
 DEFAULT_TOLERANCE_M = 2.5e-4
 """Added to every radius: covers rounding in qhull/Welzl and FCL's GJK tolerance [m]."""
 DEFAULT_MAX_PROTRUSION_M = 0.015

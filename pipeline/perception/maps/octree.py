@@ -16,9 +16,9 @@ import numpy.typing as npt
 import octomap
 import open3d as o3d
 
+from robonav.pipeline.perception.cloud_pipeline import process_cloud_with_clearing
 from robonav.pipeline.perception.config import PerceptionConfig
 from robonav.pipeline.perception.filtering import validate_points
-from robonav.pipeline.perception.cloud_pipeline import process_cloud_with_clearing
 from robonav.pipeline.perception.maps.protocol import CameraFrame, FrameRejected, OccupiedVoxels
 from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.types import BoolArray, FloatArray

@@ -26,16 +26,15 @@ import numpy.typing as npt
 import octomap
 
 from robonav.pipeline.camera import CameraIntrinsics
-from robonav.pipeline.perception.maps import voxel_kernels as kernels
 from robonav.pipeline.perception.clusters import support_layer
 from robonav.pipeline.perception.config import PerceptionConfig
 from robonav.pipeline.perception.depth import depth_from_points, remove_depth_edges
 from robonav.pipeline.perception.filtering import validate_transform
+from robonav.pipeline.perception.maps import voxel_kernels as kernels
 from robonav.pipeline.perception.maps.octree import inflation_offsets
 from robonav.pipeline.perception.maps.protocol import CameraFrame, FrameRejected, OccupiedVoxels
 from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.types import BoolArray, FloatArray, IntArray
-
 
 # octomap's default clamping thresholds (probabilities 0.1192 and 0.971).
 _CLAMP_MIN_LOG = math.log(0.1192 / (1 - 0.1192))

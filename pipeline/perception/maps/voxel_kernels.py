@@ -17,8 +17,6 @@ import numba
 import numpy as np
 
 
-
-
 @numba.njit(cache=True, nogil=True)
 def frame_hits(depth_m: np.ndarray, stride: int, fx: float, fy: float, cx: float, cy: float,
                world_from_camera: np.ndarray, max_range_m: float, origin_key: np.ndarray, resolution_m: float,

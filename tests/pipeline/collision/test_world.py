@@ -7,9 +7,9 @@ import octomap
 import pytest
 
 from robonav.pipeline.collision.world import OCCUPANCY, CollisionWorld
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.link_geometry import grow_hull
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.scene import SceneObject
 
 # A block just below the hand at home: the fingers reach into it when joint 1 is near 0.

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from robonav.pipeline.evaluation.map_accuracy import map_accuracy
-from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 
 RES = 0.02

@@ -9,9 +9,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from robonav.pipeline.evaluation.mesh_check import MeshCollisionChecker
 from robonav.pipeline.evaluation.mbm import MBM_PANDA_POSITION_LIMITS_RAD, MbmProblemSet, mbm_robot_config, parse_mbm
+from robonav.pipeline.evaluation.mesh_check import MeshCollisionChecker
 from robonav.pipeline.robot.model import RobotModel
+
 from ...conftest import MBM_DIR
 
 """The shared benchmark data (../shared/benchmarks/mbm next to the repository)."""

@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import yaml
 
 from robonav.pipeline.evaluation.mesh_check import MeshCollisionChecker
 from robonav.pipeline.planning.metrics import interpolate_path
-from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.transforms import transform_points
+
 from ...conftest import REPO_ROOT
 
 DEFAULT_YAML = REPO_ROOT / "configs" / "default.yaml"

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from robonav.pipeline.planning.ik import IkStatus, pose_error, solve_ik
-from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.model import RobotModel
 
 LINK = "panda_hand"
 

@@ -7,8 +7,7 @@ import pytest
 
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.planning.metrics import path_length_rad
-from robonav.pipeline.planning.ompl_planners import (PLANNER_CLASSES, JointSpaceProblem, OmplSpace, plan_ompl, race,
-                                                       seed_ompl_once)
+from robonav.pipeline.planning.ompl_planners import PLANNER_CLASSES, JointSpaceProblem, OmplSpace, plan_ompl, race, seed_ompl_once
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject

@@ -7,9 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from robonav.pipeline.robot.acm import default_state_rad, generate_acm
 from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.robot.acm import default_state_rad, generate_acm
 from robonav.pipeline.robot.model import RobotModel
+
 from ...conftest import MBM_DIR
 
 MBM_BOX = MBM_DIR / "box.json"

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.robot.config import RobotConfig
 
 KUKA = RobotConfig(
     name="iiwa", urdf="pybullet_data:kuka_iiwa/model.urdf", base_link="lbr_iiwa_link_0",

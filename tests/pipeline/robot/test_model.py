@@ -8,9 +8,9 @@ import numpy as np
 import pybullet
 import pytest
 
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.link_geometry import load_mesh
 from robonav.pipeline.robot.model import RobotModel, resolve_urdf_path
-from robonav.pipeline.robot.config import RobotConfig
 
 PANDA_LINKS = (
     "panda_link0", "panda_link1", "panda_link2", "panda_link3", "panda_link4", "panda_link5",

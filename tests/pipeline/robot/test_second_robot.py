@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
-from robonav.pipeline.robot.acm import generate_acm
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
 from robonav.pipeline.planning.result import PlanStatus
+from robonav.pipeline.robot.acm import generate_acm
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.services.config import RobonavConfig, load_config
+
 from ...conftest import REPO_ROOT
 
 IIWA_CONFIG = REPO_ROOT / "configs" / "iiwa.yaml"

@@ -13,13 +13,14 @@ import yaml
 
 from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.config import ConfigError
-from robonav.pipeline.evaluation.mesh_check import MeshCollisionChecker
 from robonav.pipeline.evaluation.mbm import mbm_robot_config, parse_mbm
+from robonav.pipeline.evaluation.mesh_check import MeshCollisionChecker
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.scenes import ClutterConfig, clutter_scene, mbm_scenes, scene_bounds_m, scene_from_mapping
 from robonav.pipeline.sim.world import SimWorld
+
 from ...conftest import MBM_DIR
 
 """The shared benchmark data (../shared/benchmarks/mbm next to the repository)."""

@@ -6,8 +6,8 @@ import pytest
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.trajectory.config import ExecutorConfig
 from robonav.pipeline.trajectory.execution import ExecutionStateMachine, Limits
-from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.trajectory.timing import time_parameterize
+from robonav.pipeline.wire.codes import ErrorCode
 
 ROBOT = RobotConfig()
 LIMITS = Limits(np.array(ROBOT.max_velocity_rad_s), np.array(ROBOT.max_acceleration_rad_s2), np.array(ROBOT.max_jerk_rad_s3))

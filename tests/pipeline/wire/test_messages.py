@@ -9,14 +9,38 @@ import numpy as np
 import pytest
 
 from robonav.pipeline.camera import CameraIntrinsics
-from robonav.pipeline.wire.messages import (ALL_MESSAGES, ContactsRequest, ContactsResponse, ErrorReply, ExecuteRequest,
-                                       ExecuteResponse, ExecutorStatus, JointState, Occupancy, PlanRequest,
-                                       PlanResponse, PointCloud, SceneObjectSpec, SceneObjectState, SceneRequest,
-                                       SceneResponse, Setpoint, StopRequest, StopResponse, decode_reply)
-from robonav.pipeline.wire.messages import (CameraStats, ContactEvent, DepthImage, ObjectMotionSpec, SimObjectsRequest,
-                                       SimObjectsResponse, SimStatsRequest, SimStatsResponse)
 from robonav.pipeline.wire.codec import SCHEMA_VERSION, Message, ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
+from robonav.pipeline.wire.messages import (
+    ALL_MESSAGES,
+    CameraStats,
+    ContactEvent,
+    ContactsRequest,
+    ContactsResponse,
+    DepthImage,
+    ErrorReply,
+    ExecuteRequest,
+    ExecuteResponse,
+    ExecutorStatus,
+    JointState,
+    ObjectMotionSpec,
+    Occupancy,
+    PlanRequest,
+    PlanResponse,
+    PointCloud,
+    SceneObjectSpec,
+    SceneObjectState,
+    SceneRequest,
+    SceneResponse,
+    Setpoint,
+    SimObjectsRequest,
+    SimObjectsResponse,
+    SimStatsRequest,
+    SimStatsResponse,
+    StopRequest,
+    StopResponse,
+    decode_reply,
+)
 
 RNG = np.random.default_rng(7)
 NAMES = tuple(f"j{i}" for i in range(7))

@@ -15,6 +15,7 @@ import pytest
 from robonav.pipeline.scene import SceneObject
 from robonav.services.bench.plan import SUMMARY_KEYS, ProblemRecord, format_table, occupancy_of_objects, summarize
 from robonav.services.cli import main as cli_main
+
 from ...conftest import MBM_DIR
 
 # The intended smoke set is the first 3 problems of each family minus one (20 problems). Within

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from robonav.services.campaign.run import campaign_config, load_scenes, moving_scene_indices, parse_args, summarize, table
 from robonav.pipeline.config import ConfigError
+from robonav.services.campaign.run import campaign_config, load_scenes, moving_scene_indices, parse_args, summarize, table
 from robonav.services.config import load_config
 
 from ..conftest import free_port, write_config

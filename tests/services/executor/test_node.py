@@ -14,9 +14,16 @@ import octomap
 import pytest
 import zenoh
 
-from robonav.pipeline.wire.messages import (ErrorReply, ExecuteRequest, ExecuteResponse, JointState, Occupancy, Setpoint,
-                                       StopResponse)
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.wire.messages import (
+    ErrorReply,
+    ExecuteRequest,
+    ExecuteResponse,
+    JointState,
+    Occupancy,
+    Setpoint,
+    StopResponse,
+)
 from robonav.services.client import RobonavClient
 from robonav.services.common import declare_latched_publisher, open_session
 from robonav.services.config import ZenohConfig, load_config

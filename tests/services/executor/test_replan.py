@@ -11,13 +11,21 @@ import time
 
 import numpy as np
 
-from robonav.pipeline.wire.messages import (ErrorReply, ExecuteResponse, ExecutorStatus, PerceptionClearRequest,
-                                       PerceptionClearResponse, PlanResponse, SimObjectsRequest, SimObjectsResponse)
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import intruder_for_trajectory, perceivable_objects
 from robonav.pipeline.trajectory.timing import time_parameterize
+from robonav.pipeline.wire.messages import (
+    ErrorReply,
+    ExecuteResponse,
+    ExecutorStatus,
+    PerceptionClearRequest,
+    PerceptionClearResponse,
+    PlanResponse,
+    SimObjectsRequest,
+    SimObjectsResponse,
+)
 from robonav.services.client import RobonavClient
 from robonav.services.config import load_config
 from robonav.services.planner.scene_specs import object_spec

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import zenoh
 
-from robonav.pipeline.wire.messages import Setpoint
 from robonav.pipeline.trajectory.blending import blend_from_state
+from robonav.pipeline.trajectory.setpoint_table import SetpointTable, sample_table
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.pipeline.trajectory.trajectory import TrajectoryLimits
+from robonav.pipeline.wire.messages import Setpoint
 from robonav.services.common import open_session
 from robonav.services.config import ZenohConfig, load_config
-from robonav.pipeline.trajectory.setpoint_table import SetpointTable, sample_table
 from robonav.services.executor.setpoint_stream import SetpointStream, wall_from_monotonic
 
 from ..conftest import free_port

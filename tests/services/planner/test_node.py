@@ -17,9 +17,17 @@ import octomap
 import pytest
 import zenoh
 
-from robonav.pipeline.wire.messages import (ErrorReply, JointState, Occupancy, PlanRequest, PlanResponse, SceneObjectSpec,
-                                       SceneRequest, SceneResponse)
 from robonav.pipeline.planning.ik import pose_error
+from robonav.pipeline.wire.messages import (
+    ErrorReply,
+    JointState,
+    Occupancy,
+    PlanRequest,
+    PlanResponse,
+    SceneObjectSpec,
+    SceneRequest,
+    SceneResponse,
+)
 from robonav.services.client import RobonavClient
 from robonav.services.common import declare_latched_publisher, open_session
 from robonav.services.config import ZenohConfig, load_config

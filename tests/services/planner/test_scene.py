@@ -12,9 +12,9 @@ import pytest
 import zenoh
 
 from robonav.pipeline.collision.world import CollisionWorld
-from robonav.pipeline.wire.messages import ErrorReply, SceneObjectSpec, SceneRequest, SceneResponse, decode_reply
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.wire.codec import Message
+from robonav.pipeline.wire.messages import ErrorReply, SceneObjectSpec, SceneRequest, SceneResponse, decode_reply
 from robonav.services.common import guarded_queryable, open_session
 from robonav.services.config import ZenohConfig
 from robonav.services.keys import Keys

@@ -27,13 +27,12 @@ from mcap.reader import make_reader
 
 from robonav.pipeline.camera import CameraIntrinsics
 from robonav.pipeline.wire.messages import JointState, PointCloud
-from robonav.services.recording import replay
 from robonav.services.common import open_session
 from robonav.services.config import ZenohConfig
-from robonav.services.recording.record import Recorder
+from robonav.services.recording import replay
 from robonav.services.recording.files import Recording, RecordingError, RecordingWriter
+from robonav.services.recording.record import Recorder
 from robonav.services.recording.replay import Replayer, ReplayOptions
-
 
 
 def _load_conftest_helpers():  # noqa: ANN202 - importlib mode: conftest is not importable by name

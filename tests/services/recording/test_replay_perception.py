@@ -19,16 +19,16 @@ import numpy as np
 import pytest
 import zenoh
 
-from robonav.pipeline.wire.messages import JointState, PointCloud
-from robonav.pipeline.perception.maps.protocol import CameraFrame
 from robonav.pipeline.perception.maps.octree import OccupancyMap
+from robonav.pipeline.perception.maps.protocol import CameraFrame
 from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.transforms import transform_points
+from robonav.pipeline.wire.messages import JointState, PointCloud
 from robonav.services.common import open_session
 from robonav.services.config import ZenohConfig, load_config
-from robonav.services.recording.record import Recorder
 from robonav.services.recording.files import Recording
+from robonav.services.recording.record import Recorder
 from robonav.services.recording.replay import Replayer, ReplayOptions
 
 CONFIG = load_config()

@@ -13,13 +13,25 @@ import pytest
 import yaml
 import zenoh
 
-from robonav.pipeline.wire.messages import (ContactEvent, DepthImage, ErrorReply, ExecutorStatus, JointState,
-                                       ObjectMotionSpec, PointCloud, SceneObjectSpec, Setpoint, SimObjectsRequest,
-                                       SimObjectsResponse, SimStatsRequest, SimStatsResponse)
 from robonav.pipeline.perception.depth import points_from_depth
 from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.transforms import look_at_quat_xyzw, transform_points
+from robonav.pipeline.wire.messages import (
+    ContactEvent,
+    DepthImage,
+    ErrorReply,
+    ExecutorStatus,
+    JointState,
+    ObjectMotionSpec,
+    PointCloud,
+    SceneObjectSpec,
+    Setpoint,
+    SimObjectsRequest,
+    SimObjectsResponse,
+    SimStatsRequest,
+    SimStatsResponse,
+)
 from robonav.services.client import RobonavClient
 from robonav.services.common import open_session
 from robonav.services.config import RobonavConfig, ZenohConfig, load_config

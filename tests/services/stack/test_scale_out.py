@@ -23,14 +23,21 @@ import numpy as np
 import pytest
 import zenoh
 
-from robonav.pipeline.wire.messages import (ErrorReply, PlanRequest, PlanResponse, SceneObjectSpec, SceneRequest,
-                                       SceneResponse, decode_reply)
 from robonav.pipeline.wire.codes import ErrorCode
+from robonav.pipeline.wire.messages import (
+    ErrorReply,
+    PlanRequest,
+    PlanResponse,
+    SceneObjectSpec,
+    SceneRequest,
+    SceneResponse,
+    decode_reply,
+)
 from robonav.services import health
-from robonav.services.tools import plan as plan_cli
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.common import open_session
 from robonav.services.config import ZenohConfig
+from robonav.services.tools import plan as plan_cli
 
 from ..conftest import free_port, write_config
 

@@ -20,14 +20,14 @@ import numpy as np
 import pytest
 import zenoh
 
-from robonav.pipeline.wire.messages import ErrorReply, ExecutorStatus, StopResponse
 from robonav.pipeline.wire.codes import ErrorCode
+from robonav.pipeline.wire.messages import ErrorReply, ExecutorStatus, StopResponse
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.common import to_zenoh_config
 from robonav.services.config import ZenohConfig, load_config
 
-from ..conftest import free_port, write_config
 from ...conftest import REPO_ROOT
+from ..conftest import free_port, write_config
 
 SECURITY_DIR = REPO_ROOT / "configs" / "security"
 START_TIMEOUT_S = 30.0

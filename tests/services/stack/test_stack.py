@@ -24,6 +24,7 @@ from robonav.pipeline.wire.messages import (
 )
 from robonav.services.client import RobonavClient
 from robonav.services.config import load_config
+
 from ...conftest import REPO_ROOT
 
 REPO = REPO_ROOT

@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robonav.pipeline.wire.messages import Setpoint
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.trajectory.setpoint_table import sample_table
 from robonav.pipeline.trajectory.timing import time_parameterize
-from robonav.services.tools import plot
+from robonav.pipeline.wire.messages import Setpoint
 from robonav.services.config import load_config
 from robonav.services.recording.files import RecordingWriter
-from robonav.pipeline.trajectory.setpoint_table import sample_table
+from robonav.services.tools import plot
 
 CONFIG = load_config()
 ROBOT = RobotModel.from_config(CONFIG.robot)

@@ -19,11 +19,18 @@ import zenoh
 pytest.importorskip("viser", reason="the `view` extra (viser) is not installed")
 
 from robonav.pipeline.camera import CameraConfig  # noqa: E402
-from robonav.pipeline.wire.messages import (ErrorReply, ExecuteResponse, ExecutorPath, ExecutorStatus, JointState,  # noqa: E402
-                                       Occupancy, PointCloud)
 from robonav.pipeline.perception.depth import points_from_depth  # noqa: E402
 from robonav.pipeline.robot.model import RobotModel  # noqa: E402
 from robonav.pipeline.wire.codec import ProtocolError  # noqa: E402
+from robonav.pipeline.wire.messages import (  # noqa: E402
+    ErrorReply,
+    ExecuteResponse,
+    ExecutorPath,
+    ExecutorStatus,
+    JointState,
+    Occupancy,
+    PointCloud,
+)
 from robonav.services.client import RobonavClient  # noqa: E402
 from robonav.services.common import declare_latched_publisher, declare_latched_subscriber, open_session  # noqa: E402
 from robonav.services.config import ZenohConfig, load_config  # noqa: E402

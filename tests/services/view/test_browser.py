@@ -23,8 +23,8 @@ pytest.importorskip("playwright", reason="the `view` extra (playwright) is not i
 
 from PIL import Image  # noqa: E402
 
-from robonav.pipeline.wire.messages import ExecutorPath, ExecutorStatus, JointState  # noqa: E402
 from robonav.pipeline.robot.model import RobotModel  # noqa: E402
+from robonav.pipeline.wire.messages import ExecutorPath, ExecutorStatus, JointState  # noqa: E402
 from robonav.services.common import declare_latched_publisher, open_session  # noqa: E402
 from robonav.services.config import RobonavConfig, load_config  # noqa: E402
 from robonav.services.keys import Keys  # noqa: E402

@@ -8,12 +8,13 @@ import numpy as np
 import octomap
 import pytest
 
-from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
 from robonav.pipeline.collision.edges import bisection_order
+from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
 from robonav.pipeline.collision.world import CollisionWorld
-from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
+
 from ....conftest import MBM_DIR
 
 MBM_BOX = MBM_DIR / "box.json"

@@ -8,8 +8,8 @@ import pytest
 
 from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
 from robonav.pipeline.collision.world import CollisionWorld
-from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 
 

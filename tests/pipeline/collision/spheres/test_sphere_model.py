@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from robonav.pipeline.collision.spheres.sphere_model import box_points, cover_convex_points, cylinder_points, robot_sphere_model
 from robonav.pipeline.robot.link_geometry import convex_hull
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.collision.spheres.sphere_model import box_points, cover_convex_points, cylinder_points, robot_sphere_model
 
 
 def _hull_samples(vertices: np.ndarray, rng: np.random.Generator, count: int = 4000) -> np.ndarray:

@@ -13,8 +13,8 @@ from robonav.pipeline.perception.config import PerceptionConfig
 from robonav.pipeline.perception.depth import depth_from_points, points_from_depth
 from robonav.pipeline.perception.maps.projection import ProjectionOccupancyMap
 from robonav.pipeline.perception.self_filter import SelfFilter
-from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.world import SimWorld
