@@ -22,13 +22,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import numpy.typing as npt
-import pybullet as p
 
 from robonav.calibration.board import BoardSpec, board_image
 from robonav.calibration.dataset import IntrinsicsSpec
 from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import resolve_urdf_path
+from robonav.pipeline.sim.bullet import pybullet as p
 from robonav.pipeline.transforms import quat_xyzw_from_rotation
 from robonav.pipeline.types import FloatArray
 

@@ -12,11 +12,14 @@ whole time budget to shorten their path, as they do in MoveIt.
 
 from __future__ import annotations
 
+import atexit
+import gc
 import math
 import multiprocessing
 import multiprocessing.connection
 import threading
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -47,6 +50,8 @@ ROADMAP = frozenset({"prm", "prmstar"})
 _RANGED = frozenset({"rrtconnect", "rrt", "rrtstar"})
 
 _ompl_seeded = False
+_live_spaces: weakref.WeakSet[OmplSpace] = weakref.WeakSet()
+"""Every OmplSpace not yet collected, so the interpreter can release their OMPL objects on exit."""
 
 
 def seed_ompl_once(seed: int) -> bool:
@@ -71,6 +76,14 @@ def seed_ompl_once(seed: int) -> bool:
     ou.RNG.setSeed(int(seed) + 1)
     _ompl_seeded = True
     return True
+
+
+@atexit.register
+def _release_spaces() -> None:
+    """Free the OMPL objects of every space before the bindings are torn down (see `OmplSpace.release`)."""
+    for space in list(_live_spaces):
+        space.release()
+    gc.collect()
 
 
 @dataclass(frozen=True)
@@ -142,6 +155,22 @@ class OmplSpace:
         self.info.setup()
         self._planners: dict[str, ob.Planner] = {}
         self._lock = threading.Lock()
+        _live_spaces.add(self)
+
+    def release(self) -> None:
+        """Drop this space's OMPL objects; it cannot plan afterwards.
+
+        The edge validator is a Python object that OMPL's SpaceInformation holds from C++,
+        while the validator holds the SpaceInformation: a cycle the garbage collector frees
+        only once nothing else refers to either. An interpreter exiting with a live space
+        tears the bindings down first, and nanobind reports every object of the cycle (and
+        every type and function they keep) as leaked.
+        """
+        with self._lock:
+            self._planners.clear()
+        self._validator = None  # type: ignore[assignment]
+        self.info = None  # type: ignore[assignment]
+        self.space = None  # type: ignore[assignment]
 
     def to_array(self, state: ob.State) -> FloatArray:
         # Called twice per edge check: an iterator into fromiter costs less than a list.

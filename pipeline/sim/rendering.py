@@ -10,10 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-import pybullet as p
 
 from robonav.pipeline.camera import CameraConfig, CameraIntrinsics
 from robonav.pipeline.perception.depth import depth_from_opengl_buffer
+from robonav.pipeline.sim.bullet import pybullet as p
 
 # OpenGL cameras look along -z with y up; the optical frame looks along +z with y down.
 _GL_FROM_OPTICAL = np.diag([1.0, -1.0, -1.0, 1.0])

@@ -14,12 +14,12 @@ from types import TracebackType
 
 import numpy as np
 import numpy.typing as npt
-import pybullet as p
 import pybullet_data
 
 from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.sim.bullet import pybullet as p
 from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.rendering import DepthFrame, opengl_projection_matrix, render_depth
 

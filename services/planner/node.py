@@ -53,8 +53,10 @@ class PlannerNode(Node):
         self.cfg = cfg
         self.robot = RobotModel.from_config(cfg.robot)
         self.world = CollisionWorld(self.robot, padding_m=cfg.robot.padding_m)
-        self.planner = MotionPlanner(self.robot, self.world, cfg.planner)
+        # Before the planner exists: building its OMPL space already draws random numbers, and a
+        # seed set after that has no effect (OMPL logs "Random number generation already started").
         seed_ompl_once(cfg.planner.seed)
+        self.planner = MotionPlanner(self.robot, self.world, cfg.planner)
         self._lock = threading.Lock()  # one plan at a time; map swaps wait for it
         self._state_lock = threading.Lock()
         self._joint_state: JointState | None = None
