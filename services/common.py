@@ -206,6 +206,9 @@ def parse_args_and_config(prog: str, description: str, argv: list[str] | None,
         if args.zenoh_config is not None:
             cfg = dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config))
         to_zenoh_config(cfg.zenoh)  # a bad Zenoh config file is a config error, not a crash later
+        from robonav.services.stack.secrets import check_example_passwords
+
+        check_example_passwords(cfg.zenoh.config_file)
         return args, cfg
     except ConfigError as exc:
         log.error("%s", exc)

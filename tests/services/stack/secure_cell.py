@@ -3,6 +3,7 @@
 Real Zenoh over loopback: `robonav router` processes with the committed router configs,
 service processes, in-process client sessions with the committed client configs, all run in
 a directory where `gen_certs.sh` wrote fresh certificates (the configs name them relatively).
+The example passwords are accepted through `ROBONAV_DEV_STACK=1` (a development stack).
 """
 
 from __future__ import annotations
@@ -22,13 +23,14 @@ import zenoh
 
 from robonav.services.common import to_zenoh_config
 from robonav.services.config import ZenohConfig
+from robonav.services.stack.secrets import DEV_STACK_ENV
 
 from ...conftest import REPO_ROOT
 from ..conftest import free_port, write_config
 
 SECURITY_DIR = REPO_ROOT / "configs" / "security"
 START_TIMEOUT_S = 30.0
-DEV_ENV: dict[str, str] = {}
+DEV_ENV = {DEV_STACK_ENV: "1"}
 
 
 def make_cell_dir(directory: Path) -> Path:
@@ -54,7 +56,7 @@ def wait_for_port(port: int, proc: subprocess.Popen[bytes]) -> None:
 
 @contextlib.contextmanager
 def running(cmd: list[str], cwd: Path, env: dict[str, str] | None = None) -> Iterator[subprocess.Popen[bytes]]:
-    """`robonav CMD` as a process in `cwd`; stopped by its PID."""
+    """`robonav CMD` as a process in `cwd` (a development stack unless `env` says otherwise); stopped by its PID."""
     proc = subprocess.Popen([sys.executable, "-m", "robonav.services.cli", *cmd, "--log-level", "WARNING"], cwd=cwd,
                             env={**os.environ, **(DEV_ENV if env is None else env)})
     try:
@@ -69,12 +71,12 @@ def running(cmd: list[str], cwd: Path, env: dict[str, str] | None = None) -> Ite
 
 
 @contextlib.contextmanager
-def router(cell_dir: Path, zenoh_config: str) -> Iterator[int]:
+def router(cell_dir: Path, zenoh_config: str, env: dict[str, str] | None = None) -> Iterator[int]:
     """`robonav router` with one of the example router configs, listening on a free TLS port."""
     port = free_port()
     config = write_config(cell_dir, f"router-{port}.yaml", zenoh={"connect": [f"tls/localhost:{port}"]})
     with running(["router", "--config", str(config), "--zenoh-config", zenoh_config,
-                  "--listen", f"tls/127.0.0.1:{port}"], cell_dir) as proc:
+                  "--listen", f"tls/127.0.0.1:{port}"], cell_dir, env) as proc:
         wait_for_port(port, proc)
         yield port
 

@@ -7,6 +7,7 @@ client configs, all run in a directory where `gen_certs.sh` wrote fresh certific
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -22,9 +23,10 @@ from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.messages import ErrorReply, ExecutorStatus, StopResponse
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.config import load_config
+from robonav.services.stack.secrets import DEV_STACK_ENV, EXAMPLE_PASSWORD
 
 from ..conftest import free_port, write_config
-from .secure_cell import START_TIMEOUT_S, make_cell_dir, refused, router, running, session
+from .secure_cell import SECURITY_DIR, START_TIMEOUT_S, make_cell_dir, refused, router, running, session
 
 REQUEST_LIMIT_BYTES = 64 * 1024
 
@@ -141,3 +143,40 @@ def test_an_unusable_zenoh_config_is_a_config_error(cell_dir: Path) -> None:
                               text=True, timeout=60)
         assert done.returncode == 2, done.stderr
         assert f"{name}: key '<file>': not a usable Zenoh config" in done.stderr
+
+
+def test_example_passwords_are_refused_outside_a_development_stack(cell_dir: Path) -> None:
+    port = free_port()
+    config = write_config(cell_dir, "refuse.yaml", zenoh={"connect": [f"tls/localhost:{port}"]})
+    env = {k: v for k, v in os.environ.items() if k != DEV_STACK_ENV}
+    for cmd in (["router", "--listen", f"tls/127.0.0.1:{port}", "--zenoh-config", "router-acl.json5"],
+                ["serve", "planner", "--zenoh-config", "client-planner.json5"]):
+        done = subprocess.run([sys.executable, "-m", "robonav.services.cli", *cmd, "--config", str(config)],
+                              cwd=cell_dir, env=env, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2, done.stderr
+        assert "example password" in done.stderr and DEV_STACK_ENV in done.stderr
+
+
+def test_setup_cell_gives_each_identity_its_own_secrets(tmp_path: Path) -> None:
+    secrets = tmp_path / "security"
+    subprocess.run(["bash", str(SECURITY_DIR / "setup_cell.sh"), str(secrets)], check=True, capture_output=True)
+    passwords = dict(line.split(":", 1) for line in (secrets / "router" / "credentials.txt").read_text().splitlines())
+    assert set(passwords) == {"sim", "perception", "planner", "executor", "operator", "viewer", "health"}
+    assert all(len(p) == 32 and not EXAMPLE_PASSWORD.match(p) for p in passwords.values())
+    # Each identity's directory holds its own password and the CA certificate, nothing else secret;
+    # only ca/ holds the CA's key.
+    for directory in [d for d in secrets.iterdir() if d.name not in ("ca", "router")]:
+        files = sorted(str(p.relative_to(directory)) for p in directory.rglob("*") if p.is_file())
+        assert files == ["certs/ca.pem", f"client-{directory.name}.json5"], files
+        text = (directory / f"client-{directory.name}.json5").read_text()
+        assert [user for user, p in passwords.items() if p in text] == [directory.name]
+    assert [p.relative_to(secrets) for p in secrets.rglob("ca.key")] == [Path("ca/ca.key")]
+    # The cell starts without the development flag, and its identities log in.
+    env = {k: v for k, v in os.environ.items() if k != DEV_STACK_ENV}
+    with router(secrets / "router", "router-acl.json5", env) as port:
+        endpoint = f"tls/localhost:{port}"
+        with session(secrets / "sim", endpoint, "client-sim.json5") as a, \
+                session(secrets / "viewer", endpoint, "client-viewer.json5") as b:
+            assert a.info.zid() != b.info.zid()
+        shutil.copy(SECURITY_DIR / "client-viewer.json5", secrets / "viewer" / "client-example.json5")
+        refused(secrets / "viewer", endpoint, "client-example.json5")  # the example password is not the cell's
