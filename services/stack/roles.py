@@ -13,12 +13,17 @@ benchmarks that report `forged_delivered`.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import zenoh
+
+from robonav.services.common import to_zenoh_config
+from robonav.services.config import ZenohConfig
 
 ROLES: tuple[str, ...] = ("sim", "perception", "planner", "executor", "operator", "viewer")
 
@@ -278,6 +283,25 @@ def _settle(sessions: dict[str, zenoh.Session], root: str, inbox: _Inbox) -> Non
         while not _answered(sessions[asker].get(f"{root}/{key}", timeout=0.5), f"answer:{key}".encode()):
             if time.monotonic() > deadline:
                 raise TimeoutError(f"the operator's query on {root}/{key} gets no answer from {owner}")
+
+
+def logins(security_dir: str | Path, endpoint: str) -> Callable[[str], zenoh.Session]:
+    """`open_role` for `probe_roles`: sessions to `endpoint` with `client-<role>.json5` of
+    `security_dir`, either a cell from `setup_cell.sh` (`<role>/client-<role>.json5`) or one
+    directory holding every client file (a copy of configs/security with `certs/`).
+
+    Example, against a router running router-acl.json5:
+        results = probe_roles(logins("cell/security", "tls/localhost:7447"))
+        assert forged_delivered(results) == 0
+    """
+    root = Path(security_dir)
+
+    def open_role(role: str) -> zenoh.Session:
+        directory = root / role if (root / role / f"client-{role}.json5").is_file() else root
+        with contextlib.chdir(directory):  # the client files name their certificates relatively
+            return zenoh.open(to_zenoh_config(ZenohConfig(connect=(endpoint,), config_file=f"client-{role}.json5")))
+
+    return open_role
 
 
 def forged_delivered(results: dict[str, RoleProbe]) -> int:

@@ -26,7 +26,16 @@ import zenoh
 from robonav.pipeline.wire.messages import JointState, Occupancy
 from robonav.services.common import declare_latched_subscriber
 from robonav.services.config import load_config
-from robonav.services.stack.roles import ASKS, PUBLISHES, ROLES, SERVES, all_published, all_served, probe_roles
+from robonav.services.stack.roles import (
+    ASKS,
+    PUBLISHES,
+    ROLES,
+    SERVES,
+    all_published,
+    all_served,
+    logins,
+    probe_roles,
+)
 
 from ..conftest import write_config
 from .secure_cell import DEV_ENV, make_cell_dir, router, running, session
@@ -41,7 +50,7 @@ def cell_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_every_role_sends_only_what_it_may(cell_dir: Path) -> None:
     with router(cell_dir, "router-acl.json5") as port:
-        results = probe_roles(lambda role: session(cell_dir, f"tls/localhost:{port}", f"client-{role}.json5"))
+        results = probe_roles(logins(cell_dir, f"tls/localhost:{port}"))
     print(json.dumps({role: {k: v for k, v in r.summary().items() if k != "leaks"} for role, r in results.items()}))
     assert set(results) == set(ROLES)
     for role, probe in results.items():

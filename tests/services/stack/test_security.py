@@ -23,6 +23,7 @@ from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.messages import ErrorReply, ExecutorStatus, StopResponse
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.config import load_config
+from robonav.services.stack.roles import forged_delivered, logins, probe_roles
 from robonav.services.stack.secrets import DEV_STACK_ENV, EXAMPLE_PASSWORD
 
 from ..conftest import free_port, write_config
@@ -180,3 +181,5 @@ def test_setup_cell_gives_each_identity_its_own_secrets(tmp_path: Path) -> None:
             assert a.info.zid() != b.info.zid()
         shutil.copy(SECURITY_DIR / "client-viewer.json5", secrets / "viewer" / "client-example.json5")
         refused(secrets / "viewer", endpoint, "client-example.json5")  # the example password is not the cell's
+        # Its identities keep to their roles (the cell's own passwords, one directory each).
+        assert forged_delivered(probe_roles(logins(secrets, endpoint))) == 0
