@@ -5,7 +5,9 @@ does, following docs/protocol.md. Run the stack first (`robonav up`), then:
 
     python examples/plan_client.py --goal 0.4 -0.3 0.0 -2.2 0.0 1.9 0.8 [--execute]
 
-Exit code 0 when the plan (and execution) succeeded, 1 on a structured error, 2 on no reply.
+Exit code 0 when the plan (and execution) succeeded, 1 on a structured error, 2 on no reply,
+130 after Ctrl-C: while the arm moves, Ctrl-C sends `executor/stop` and waits until the
+executor reports a resting state and the joint states show every joint still.
 """
 
 from __future__ import annotations
@@ -44,6 +46,36 @@ def query(session: zenoh.Session, key: str, request: dict, timeout_s: float) -> 
     return None
 
 
+REST_VELOCITY_RAD_S = 0.01
+
+
+def stop_and_wait(session: zenoh.Session, root: str, timeout_s: float) -> bool:
+    """Send executor/stop; wait for a resting status and joint states with every velocity ~0."""
+    rest = {"status": threading.Event(), "still": threading.Event()}
+
+    def on_status(sample: zenoh.Sample) -> None:
+        if msgpack.unpackb(sample.payload.to_bytes(), raw=False)["state"] in ("idle", "stopped", "error"):
+            rest["status"].set()
+
+    def on_joints(sample: zenoh.Sample) -> None:
+        velocity = decode_array(msgpack.unpackb(sample.payload.to_bytes(), raw=False)["velocity"])
+        if max((abs(v) for v in velocity), default=0.0) <= REST_VELOCITY_RAD_S:
+            rest["still"].set()
+        else:
+            rest["still"].clear()
+
+    reply = query(session, f"{root}/executor/stop", {"v": 1}, 5.0)
+    if reply is None or not reply.get("ok", False):
+        print(f"stop failed: {reply}", file=sys.stderr)
+        return False
+    subscribers = [session.declare_subscriber(f"{root}/executor/status", on_status),
+                   session.declare_subscriber(f"{root}/robot/joint_states", on_joints)]
+    at_rest = rest["status"].wait(timeout_s) and rest["still"].wait(timeout_s)
+    for subscriber in subscribers:
+        subscriber.undeclare()
+    return at_rest
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--router", default="tcp/127.0.0.1:7447")
@@ -51,6 +83,7 @@ def main() -> int:
     parser.add_argument("--goal", type=float, nargs="+", required=True, help="joint goal [rad], robot joint order")
     parser.add_argument("--planning-time", type=float, default=2.0)
     parser.add_argument("--execute", action="store_true", help="also execute the path and wait for the result")
+    parser.add_argument("--velocity-scaling", type=float, help="scale the velocity and acceleration limits, (0, 1]")
     parser.add_argument("--timeout", type=float, default=30.0)
     args = parser.parse_args()
 
@@ -91,12 +124,19 @@ def main() -> int:
         execute = query(session, f"{root}/executor/execute", {
             "v": 1, "joint_names": plan["joint_names"],
             "path": {"dtype": "<f8", "shape": [len(path), len(path[0])], "data": struct.pack(f"<{len(flat)}d", *flat)},
+            "max_velocity_scaling_factor": args.velocity_scaling, "max_acceleration_scaling_factor": args.velocity_scaling,
         }, args.timeout)
         if execute is None or not execute.get("ok", False):
             print(f"execute failed: {execute}", file=sys.stderr)
             return 1 if execute else 2
         outcome["trajectory_id"] = execute["trajectory_id"]
-        finished = done.wait(execute["duration_s"] + args.timeout)
+        try:
+            finished = done.wait(execute["duration_s"] + args.timeout)
+        except KeyboardInterrupt:  # Ctrl-C while the arm moves: stop it, and wait until it rests
+            subscriber.undeclare()
+            at_rest = stop_and_wait(session, root, 10.0)
+            print(json.dumps({"trajectory_id": execute["trajectory_id"], "result": "interrupted", "at_rest": at_rest}))
+            return 130
         subscriber.undeclare()
         print(json.dumps({"trajectory_id": execute["trajectory_id"], "result": outcome.get("result", "timeout")}))
         return 0 if finished and outcome.get("result") == "succeeded" else 1

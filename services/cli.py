@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "router": ("robonav.services.stack.router", "a Zenoh router for the services (TLS, authentication, access control "
                                           "from a Zenoh config): `robonav router [--listen tcp/0.0.0.0:7447]`"),
     "plan": ("robonav.services.tools.plan", "plan (and execute) from the shell: `robonav plan --goal Q... [--race] [--execute]`"),
+    "stop": ("robonav.services.tools.stop", "stop the arm and wait until it rests: `robonav stop [--emergency]`"),
     "view": ("robonav.services.view.app", "a live 3D view in the browser; `--snapshot out.png` writes a picture"),
     "record": ("robonav.services.recording.record", "record Zenoh traffic into an MCAP file: `robonav record -o run.mcap [KEYEXPR ...]`"),
     "replay": ("robonav.services.recording.replay", "publish a recording back with its timing: `robonav replay run.mcap [--rate R] [--loop]`"),

@@ -59,8 +59,12 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
 
 
 def declare_latched_publisher(session: zenoh.Session, key: str) -> zenoh.ext.AdvancedPublisher:
-    """A publisher whose last sample late subscribers still get, like a latched ROS topic."""
+    """A publisher whose last sample late subscribers still get, like a latched ROS topic.
+
+    Its samples carry sequence numbers (zenoh-ext sample-miss detection, without heartbeats),
+    so an advanced subscriber such as `robonav record` counts the ones lost on the way."""
     return zenoh.ext.declare_advanced_publisher(session, key, cache=zenoh.ext.CacheConfig(max_samples=1),
+                                                sample_miss_detection=zenoh.ext.MissDetectionConfig(),
                                                 publisher_detection=True)
 
 
@@ -206,6 +210,9 @@ def parse_args_and_config(prog: str, description: str, argv: list[str] | None,
         if args.zenoh_config is not None:
             cfg = dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config))
         to_zenoh_config(cfg.zenoh)  # a bad Zenoh config file is a config error, not a crash later
+        from robonav.services.stack.secrets import check_example_passwords
+
+        check_example_passwords(cfg.zenoh.config_file)
         return args, cfg
     except ConfigError as exc:
         log.error("%s", exc)

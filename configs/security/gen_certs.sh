@@ -9,7 +9,8 @@
 # ROUTER_HOSTS (comma separated, default "localhost,router") and the addresses in ROUTER_IPS
 # (default "127.0.0.1"); clients check it against the host they connect to. A client
 # certificate carries its name as the common name (CN), which access-control rules can match
-# (`cert_common_names`). Default clients: the four services plus an operator and a viewer.
+# (`cert_common_names`). Default clients: the four services plus an operator and a viewer; the one
+# name `none` makes no client certificate (passwords over server-side TLS need none).
 # Existing files are kept: delete OUT_DIR to start over. Validity: DAYS (default 365).
 set -euo pipefail
 
@@ -17,6 +18,7 @@ out=${1:-certs}
 shift || true
 clients=("$@")
 [ ${#clients[@]} -gt 0 ] || clients=(sim perception planner executor operator viewer)
+[ "${clients[*]}" != none ] || clients=()
 router_hosts=${ROUTER_HOSTS:-localhost,router}
 router_ips=${ROUTER_IPS:-127.0.0.1}
 days=${DAYS:-365}
@@ -56,7 +58,7 @@ keyUsage=critical,digitalSignature
 extendedKeyUsage=serverAuth,clientAuth
 subjectAltName=${san#,}"
 
-for name in "${clients[@]}"; do
+for name in "${clients[@]+"${clients[@]}"}"; do
     sign "$name" "basicConstraints=CA:FALSE
 keyUsage=critical,digitalSignature
 extendedKeyUsage=clientAuth
@@ -67,4 +69,4 @@ rm -f "$out/ca.srl"
 # Keys stay private to their owner; certificates (and the CA certificate) are public.
 chmod 600 "$out"/*.key
 chmod 644 "$out"/*.pem
-echo "certificates in $out: ca.pem, router.pem, ${clients[*]/%/.pem}"
+echo "certificates in $out: ca.pem, router.pem${clients[*]+ ${clients[*]/%/.pem}}"

@@ -226,8 +226,10 @@ def _replay_timing(session: zenoh.Session, path: Path, config: Path, tmp_dir: Pa
 
     sub = session.declare_subscriber(cloud_key, on_cloud)
     stats_path = tmp_dir / "replay.json"
+    # The joint states too (--robot-keys): the benchmark's own cell, and the replay's full load.
     code = subprocess.run(_robonav("replay", str(path), "--config", str(config), "--end", str(seconds), "--json",
-                                   str(stats_path), "--wait-subscribers", "30"), stdout=subprocess.DEVNULL).returncode
+                                   str(stats_path), "--wait-subscribers", "30", "--robot-keys"),
+                          stdout=subprocess.DEVNULL).returncode
     time.sleep(0.5)
     sub.undeclare()
     replay_stats = json.loads(stats_path.read_text(encoding="utf-8")) if stats_path.exists() else {}

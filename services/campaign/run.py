@@ -48,6 +48,7 @@ from robonav.services.common import open_session, setup_logging
 from robonav.services.config import RobonavConfig, default_config_path, load_config
 from robonav.services.keys import SERVICES
 from robonav.services.stack.up import Stack
+from robonav.services.tools.stop import Interrupt, stop_after_interrupt
 
 log = logging.getLogger("robonav.campaign")
 
@@ -300,9 +301,12 @@ def run_campaign(args: argparse.Namespace, cfg: RobonavConfig, config_path: Path
                     progress.update(1)
                     progress.set_postfix(reached=sum(g["reached"] for r in records for g in r["goals"]),
                                          contacts=sum(r["contacts"] for r in records))
-            except KeyboardInterrupt:  # Ctrl-C or SIGTERM: report the scenes that finished
+            except KeyboardInterrupt:  # Ctrl-C or SIGTERM: stop the arm, report the scenes that finished
                 interrupted = True
-                log.warning("interrupted after %d scenes", len(records))
+                log.warning("interrupted after %d scenes: stopping the arm", len(records))
+                with Interrupt() as again:  # a second Ctrl-C while braking: an emergency stop
+                    again.count = 1
+                    log.warning("stop: %s", stop_after_interrupt(client, again))
             finally:
                 runner.close()
             progress.close()

@@ -28,7 +28,7 @@ from typing import BinaryIO
 import zenoh
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Chunk, Footer, Message
+from mcap.records import Channel, Chunk, Footer, Message, Metadata
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
@@ -43,6 +43,8 @@ from robonav.services.recording.schema import (
 )
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+STATS_METADATA = "robonav.record_stats"
+CHECKPOINT_METADATA = "robonav.record_checkpoint"
 CHUNK_SIZE_BYTES = 4 * 1024 * 1024
 """Chunks this large hold a cloud and its Foxglove copy together (zstd then shares their bytes)."""
 _FOOTER_RECORD_BYTES = 1 + 8 + 8 + 8 + 4
@@ -80,6 +82,7 @@ class RecordingWriter:
                  metadata: dict[str, str] | None = None, chunk_size_bytes: int = CHUNK_SIZE_BYTES) -> None:
         self._file: BinaryIO | None = open(output, "wb") if isinstance(output, (str, Path)) else None
         stream = self._file if self._file is not None else output
+        self._stream = stream
         self._writer = Writer(stream, chunk_size=chunk_size_bytes, compression=CompressionType.ZSTD)
         self._writer.start(profile="", library="robonav-arm record")
         self._writer.add_metadata("robonav.recording", dict(metadata or {}))
@@ -132,13 +135,24 @@ class RecordingWriter:
                 metadata={"source_key": key})
         return self._foxglove_channels[key]
 
+    def flush(self, checkpoint: dict[str, object] | None = None) -> None:
+        """End the chunk in progress and hand everything to the OS, so a killed writer loses
+        nothing written so far; `checkpoint` (the counts so far) goes into a
+        `robonav.record_checkpoint` metadata record after it."""
+        if self._finished:
+            return
+        self._writer.flush()
+        if checkpoint is not None:
+            self._writer.add_metadata(CHECKPOINT_METADATA, {"json": json.dumps(checkpoint, sort_keys=True)})
+        self._stream.flush()
+
     def finish(self, stats: dict[str, object] | None = None) -> None:
         """Write the stats metadata, the index and the footer; close a file opened by path."""
         if self._finished:
             return
         self._finished = True
         if stats is not None:
-            self._writer.add_metadata("robonav.record_stats", {"json": json.dumps(stats, sort_keys=True)})
+            self._writer.add_metadata(STATS_METADATA, {"json": json.dumps(stats, sort_keys=True)})
         self._writer.finish()
         if self._file is not None:
             self._file.close()
@@ -172,13 +186,19 @@ class RecordingInfo:
 class Recording:
     """A recording opened for reading; its structure (magic, footer, summary) is checked on open.
 
+    `recover`: a file without its footer (its writer was killed) is read up to its last complete
+    record instead: `complete` is then False and `truncated_at` the byte where the readable part
+    ends; channels and counts come from reading every chunk (there is no summary to read).
+
     Raises:
-        RecordingError: not MCAP, truncated (no footer: the recorder was killed before it
-            finished), or a damaged summary.
+        RecordingError: not MCAP, truncated (no footer, and not `recover`), or a damaged summary.
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, *, recover: bool = False) -> None:
         self.path = Path(path)
+        self.complete = True
+        self.truncated_at: int | None = None
+        """Where the readable part of a truncated file ends (its last complete record) [byte]."""
         try:
             self.size = self.path.stat().st_size
         except OSError as exc:
@@ -192,6 +212,10 @@ class Recording:
                      and tail[0] == 0x02)
         if not footer_ok:
             end = self._last_complete_record_end()
+            if recover:
+                self.complete, self.truncated_at = False, end
+                self.channels, self.info = self._scan()
+                return
             raise RecordingError(path, end, f"truncated: the file ({self.size} bytes) has no MCAP footer and its "
                                  f"last complete record ends at byte {end}; the recorder was stopped "
                                  "without finishing the file (killed, or the disk filled up)")
@@ -202,11 +226,15 @@ class Recording:
         """(offset, record) of every top-level record, chunks left compressed."""
         reader = StreamReader(f, skip_magic=True, emit_chunks=True, record_size_limit=self.size)
         offset = f.tell()
+        # A recovered file is read up to its last complete record, never into the torn one.
+        stop = self.truncated_at if self.truncated_at is not None else self.size + 1
+        if offset >= stop:
+            return
         try:
             for record in reader.records:
                 yield offset, record
                 offset = f.tell()
-                if isinstance(record, Footer):
+                if isinstance(record, Footer) or offset >= stop:
                     return
         except (McapError, struct.error, UnicodeDecodeError, ValueError, KeyError) as exc:
             kind = "ends inside the" if f.tell() >= self.size else "has a damaged"
@@ -223,6 +251,43 @@ class Recording:
             except RecordingError as exc:
                 end = exc.offset
         return end
+
+    def _scan(self) -> tuple[dict[int, Channel], RecordingInfo]:
+        """Channels, counts and metadata of a recovered file, from its data section."""
+        channels: dict[int, Channel] = {}
+        counts: dict[str, int] = {}
+        metadata: dict[str, dict[str, str]] = {}
+        times: list[int] = []
+
+        def on(record: object) -> None:
+            if isinstance(record, Channel):
+                channels[record.id] = record
+                if record.message_encoding == MSGPACK_ENCODING:
+                    counts.setdefault(record.topic, 0)
+            elif isinstance(record, Message) and record.channel_id in channels:
+                channel = channels[record.channel_id]
+                if channel.message_encoding == MSGPACK_ENCODING:
+                    counts[channel.topic] += 1
+                    times.append(record.log_time)
+
+        with open(self.path, "rb") as f:
+            f.seek(MAGIC_SIZE)
+            for offset, record in self._records(f):
+                if isinstance(record, Chunk):
+                    for inner in self._chunk_records(record, offset):
+                        on(inner)
+                elif isinstance(record, Metadata):
+                    metadata[record.name] = dict(record.metadata)
+                else:
+                    on(record)
+        return channels, RecordingInfo(min(times, default=0), max(times, default=0), counts, metadata)
+
+    def stats(self) -> dict[str, object] | None:
+        """What the recorder counted: its final stats, else (a recovered file) its last checkpoint's."""
+        for name in (STATS_METADATA, CHECKPOINT_METADATA):
+            if name in self.info.metadata:
+                return json.loads(self.info.metadata[name]["json"])
+        return None
 
     def _read_summary(self, summary_start: int) -> tuple[dict[int, Channel], RecordingInfo]:
         """Channels and counts from the summary section, through the library's seeking reader."""

@@ -33,7 +33,7 @@ _JOIN_TIMEOUT_S = 5.0
 
 
 def stream(path: str, keys: Sequence[str], start_ns: int | None, end_ns: int | None, loop: bool,
-           out: BinaryIO) -> None:
+           out: BinaryIO, recover: bool = False) -> None:
     """Write the recording's messages (over and over with `loop`) as frames to `out`."""
 
     def send(frame: bytes) -> None:
@@ -42,7 +42,7 @@ def stream(path: str, keys: Sequence[str], start_ns: int | None, end_ns: int | N
 
     numbers: dict[str, int] = {}
     try:
-        recording = Recording(path)
+        recording = Recording(path, recover=recover)
         pass_index = 0
         while True:
             count = 0
@@ -72,7 +72,7 @@ class ReadAhead:
         self.items: queue.Queue[Any] = queue.Queue(maxsize=max_items)
         self._halt = threading.Event()
         request = json.dumps({"path": str(recording.path), "keys": list(keys), "start_ns": start_ns,
-                              "end_ns": end_ns, "loop": loop})
+                              "end_ns": end_ns, "loop": loop, "recover": not recording.complete})
         self._process = subprocess.Popen([sys.executable, "-m", "robonav.services.recording.reader", request],
                                          stdout=subprocess.PIPE, bufsize=0)
         self._thread = threading.Thread(target=self._receive, name="replay-receive", daemon=True)
@@ -149,6 +149,7 @@ class ReadAhead:
 if __name__ == "__main__":
     args = json.loads(sys.argv[1])
     try:
-        stream(args["path"], args["keys"], args["start_ns"], args["end_ns"], args["loop"], sys.stdout.buffer)
+        stream(args["path"], args["keys"], args["start_ns"], args["end_ns"], args["loop"], sys.stdout.buffer,
+               args.get("recover", False))
     except (BrokenPipeError, KeyboardInterrupt):
         pass  # the replay stopped reading

@@ -6,14 +6,17 @@ hands them to a writer process that compresses and writes (`record_writer.py`,
 is bounded in bytes (`--max-buffer-mb`): a sample that does not fit is dropped, counted per
 key and reported, never lost silently. Clouds whose `seq` jumps are counted as lost upstream.
 SIGINT/SIGTERM (or `--duration`) stops the subscriber, drains the queue and finishes the
-file, so Ctrl-C leaves a valid recording. Exit code 0: every received sample written;
-1: samples were dropped; 2: bad config or output.
+file, so Ctrl-C leaves a valid recording. A SIGKILL of this process leaves the writer to
+finish the file, counting the samples lost with the queue (`writer.py`). An existing output
+file is kept unless `--force`. Exit code 0: every received sample written; 1: samples were
+dropped; 2: bad config or output.
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import datetime
 import json
 import logging
@@ -22,6 +25,7 @@ import queue
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -35,7 +39,7 @@ from robonav.pipeline.config import ConfigError
 from robonav.services.common import open_session, setup_logging, stop_on_signals
 from robonav.services.config import load_config
 from robonav.services.keys import Keys
-from robonav.services.recording.writer import frame_finish, frame_message
+from robonav.services.recording.writer import CHECKPOINT_S, CountersFile, frame_finish, frame_message
 
 log = logging.getLogger("robonav.record")
 
@@ -73,14 +77,21 @@ class Recorder:
         self._max_buffer_bytes = max_buffer_bytes
         self._buffered_bytes = 0
         self._lock = threading.Lock()
-        self._queue: queue.SimpleQueue[tuple[str, bytes, int, int] | None] = queue.SimpleQueue()
-        request = json.dumps({"output": str(output), "foxglove": foxglove_clouds, "metadata": metadata or {}})
+        self._queue: queue.SimpleQueue[tuple[str, bytes, int, int, int] | None] = queue.SimpleQueue()
+        # What it received so far, for the writer should this process be killed (`writer.py`).
+        self._counters_file = CountersFile(Path(tempfile.mkdtemp(prefix="robonav-record-")) / "counters.json")
+        self._counters_file.write(self.counters())
+        request = json.dumps({"output": str(output), "foxglove": foxglove_clouds, "metadata": metadata or {},
+                              "counters_file": str(self._counters_file.path)})
         self.writer = subprocess.Popen([sys.executable, "-m", "robonav.services.recording.writer", request],
                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0,
                                        start_new_session=True)  # Ctrl-C reaches us, not the writer
         self._write_error: str | None = None
         self._thread = threading.Thread(target=self._send_loop, name="record-send", daemon=True)
         self._thread.start()
+        self._closing = threading.Event()
+        self._checkpoints = threading.Thread(target=self._checkpoint_loop, name="record-checkpoint", daemon=True)
+        self._checkpoints.start()
         # Advanced subscribers also fetch the cached last sample of latched publishers (the
         # occupancy map) and report samples lost by publishers that enable miss detection.
         self._subscribers = [
@@ -98,6 +109,7 @@ class Recorder:
         payload = sample.payload.to_bytes()
         with self._lock:
             self.stats.received[key] += 1
+            index = self.stats.received[key]  # its number on this key, dropped ones included
             # An empty queue always takes one sample, however large, so progress never stops.
             if self._buffered_bytes and self._buffered_bytes + len(payload) > self._max_buffer_bytes:
                 self.stats.dropped[key] += 1
@@ -108,7 +120,7 @@ class Recorder:
                 return
             self._buffered_bytes += len(payload)
             self.stats.max_buffered_bytes = max(self.stats.max_buffered_bytes, self._buffered_bytes)
-        self._queue.put((key, payload, received_ns, source_time_ns(sample, received_ns)))
+        self._queue.put((key, payload, received_ns, source_time_ns(sample, received_ns), index))
 
     def _on_miss(self, miss: zenoh.ext.Miss) -> None:
         self.stats.missed += miss.nb
@@ -118,16 +130,24 @@ class Recorder:
         assert self.writer.stdin is not None
         fd = self.writer.stdin.fileno()
         while (item := self._queue.get()) is not None:
-            key, payload, received_ns, source_ns = item
+            key, payload, received_ns, source_ns, index = item
             if self._write_error is None:
                 try:
-                    for part in frame_message(key, payload, received_ns, source_ns):
+                    for part in frame_message(key, payload, received_ns, source_ns, index):
                         _write_all(fd, part)
                 except OSError as exc:  # the writer died (e.g. disk full): keep counting, report at the end
                     self._write_error = f"the writer process failed: {exc}"
                     log.error("%s", self._write_error)
             with self._lock:
                 self._buffered_bytes -= len(payload)
+
+    def _checkpoint_loop(self) -> None:
+        """Rewrites the counters file every CHECKPOINT_S, whether or not the writer keeps up."""
+        while not self._closing.wait(CHECKPOINT_S):
+            try:
+                self._counters_file.write(self.counters())
+            except OSError as exc:  # a full /tmp: the loss count of a kill would be stale, nothing else
+                log.warning("cannot update %s: %s", self._counters_file.path, exc)
 
     @property
     def buffered_bytes(self) -> int:
@@ -145,6 +165,8 @@ class Recorder:
             listener.undeclare()
         for sub in self._subscribers:
             sub.undeclare()
+        self._closing.set()
+        self._checkpoints.join()
         self._queue.put(None)
         self._thread.join()
         assert self.writer.stdin is not None and self.writer.stdout is not None
@@ -155,6 +177,7 @@ class Recorder:
             self._write_error = self._write_error or f"the writer process failed: {exc}"
         output = self.writer.stdout.read()
         code = self.writer.wait()
+        self._counters_file.remove()
         if code == 0 and output:
             summary: dict[str, Any] = json.loads(output)
         else:
@@ -176,8 +199,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="robonav record", description=__doc__.split("\n\n")[0])
     parser.add_argument("key_exprs", nargs="*", metavar="KEYEXPR",
                         help="key expressions to record (default: robonav/<cell>/**)")
-    parser.add_argument("-o", "--output", required=True, help="MCAP file to write")
+    parser.add_argument("-o", "--output", required=True, help="MCAP file to write (an existing one is kept unless --force)")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing output file")
     parser.add_argument("--config", help="YAML config (Zenoh connection, cell)")
+    parser.add_argument("--zenoh-config", metavar="FILE",
+                        help="Zenoh JSON5 config (TLS, login, e.g. client-viewer.json5); overrides zenoh.config_file")
     parser.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     parser.add_argument("--no-foxglove", action="store_true", help="do not add foxglove.PointCloud copies of clouds")
     parser.add_argument("--max-buffer-mb", type=float, default=DEFAULT_MAX_BUFFER_MB,
@@ -192,6 +218,8 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(args.log_level)
     try:
         cfg = load_config(args.config)
+        if args.zenoh_config is not None:
+            cfg = dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config))
     except ConfigError as exc:
         log.error("%s", exc)
         return 2
@@ -206,7 +234,10 @@ def main(argv: list[str] | None = None) -> int:
     metadata = {"key_exprs": json.dumps(key_exprs), "cell": cfg.cell,
                 "started_at": datetime.datetime.now(datetime.timezone.utc).isoformat()}
     try:
-        Path(args.output).open("wb").close()
+        Path(args.output).open("wb" if args.force else "xb").close()
+    except FileExistsError:
+        log.error("%s exists: choose another name, or --force to overwrite it", args.output)
+        return 2
     except OSError as exc:
         log.error("cannot write %s: %s", args.output, exc.strerror or exc)
         return 2

@@ -5,13 +5,21 @@ Messages go out in file (= receive) order, each at its recorded receive time sca
 perception and the planner run on recorded clouds exactly as live. A child process reads
 and decompresses ahead (`replay_reader.py`), so the publishing loop only waits on the clock:
 it sleeps until `SPIN_S` before a message is due, then spins. Publishers block rather than drop under
-congestion: a replay loses nothing. A truncated or corrupt file is an error naming the byte
-offset (exit code 2); `--check` reads the whole file without publishing.
+congestion: a replay loses nothing. A corrupt file is an error naming the byte offset (exit
+code 2); a truncated one (its writer was killed) is read up to its last complete record, with a
+warning; `--check` reads the whole file without publishing.
+
+A replay must not move or mislead a live cell: robot state and commands (`robot/**`,
+`executor/**`: joint states, setpoints, executor status and path) are published only with
+`--robot-keys`, and `--cell NAME` moves every key into another cell. Payloads go out as
+recorded, so a replayed map or cloud carries its recorded `stamp`: a planner that judges a
+map's age by its stamp takes it as old.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import queue
@@ -39,6 +47,20 @@ SPIN_S = 0.002
 READ_AHEAD_BYTES = 256 * 2**20
 READ_AHEAD_MAX_ITEMS = 4096
 PREFILL_TIMEOUT_S = 2.0
+ROBOT_KEYS = ("robonav/*/robot/**", "robonav/*/executor/**")
+"""Robot state and commands: a live cell's arm or its clients would take them as real."""
+
+
+def is_robot_key(key: str) -> bool:
+    return any(zenoh.KeyExpr(pattern).intersects(zenoh.KeyExpr(key)) for pattern in ROBOT_KEYS)
+
+
+def in_cell(key: str, cell: str | None) -> str:
+    """`key` moved into `cell` (`robonav/<cell>/...`); keys outside `robonav/` and `cell=None` stay."""
+    parts = key.split("/")
+    if cell is None or len(parts) < 3 or parts[0] != "robonav":
+        return key
+    return "/".join(["robonav", cell, *parts[2:]])
 
 
 @dataclass(frozen=True)
@@ -52,8 +74,14 @@ class ReplayOptions:
     """Skip messages received earlier than this after the recording's first message [s]."""
     end_s: float | None = None
     """Stop at messages received later than this after the recording's first message [s]."""
+    robot_keys: bool = False
+    """Also publish robot state and commands (ROBOT_KEYS); without it they are skipped."""
+    cell: str | None = None
+    """Publish under `robonav/<cell>/` instead of the recorded cell."""
 
     def __post_init__(self) -> None:
+        if self.cell is not None and (not self.cell or "/" in self.cell or "*" in self.cell or "$" in self.cell):
+            raise ValueError(f"cell must be a non-empty name without '/', '*' or '$', got {self.cell!r}")
         if self.rate is not None and not self.rate > 0:
             raise ValueError(f"rate must be > 0 (or 'max'), got {self.rate}")
         for name in ("start_s", "end_s"):
@@ -95,8 +123,12 @@ class Replayer:
         selectors = [zenoh.KeyExpr(k) for k in options.keys]
         keys = [k for k in recording.info.message_counts
                 if not selectors or any(s.intersects(zenoh.KeyExpr(k)) for s in selectors)]
-        self.publishers = {k: session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
-                           for k in keys}
+        self.skipped = {k: recording.info.message_counts[k] for k in keys
+                        if is_robot_key(k) and not options.robot_keys}
+        """Recorded robot-state and command keys left out (no `robot_keys`), with their message counts."""
+        self.publishers = {k: session.declare_publisher(in_cell(k, options.cell),
+                                                        congestion_control=zenoh.CongestionControl.BLOCK)
+                           for k in keys if k not in self.skipped}
 
     def wait_for_subscribers(self, timeout_s: float) -> bool:
         """Wait until some recorded key has a subscriber (or the timeout passes)."""
@@ -113,9 +145,12 @@ class Replayer:
         Raises:
             RecordingError: the file is damaged; messages before the damage were published.
         """
+        if not self.publishers:
+            return ReplayResult(Counter(), 0, 0, 0.0, [])
         typical = max(1, self.recording.size // max(1, sum(self.recording.info.message_counts.values())))
         max_items = min(READ_AHEAD_MAX_ITEMS, max(16, READ_AHEAD_BYTES // typical))
-        reader = ReadAhead(self.recording, keys=self.options.keys, start_ns=self._start_ns, end_ns=self._end_ns,
+        # Exactly the keys published (recorded keys, no wildcards): skipped ones are not even read.
+        reader = ReadAhead(self.recording, keys=tuple(self.publishers), start_ns=self._start_ns, end_ns=self._end_ns,
                            loop=self.options.loop, max_items=max_items)
         try:
             # Start the clock with a filled read-ahead queue: the first chunks decompress meanwhile.
@@ -190,25 +225,43 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--keys", nargs="+", default=[], metavar="KEYEXPR", help="replay only these key expressions")
     parser.add_argument("--start", type=float, help="skip the first START seconds of the recording")
     parser.add_argument("--end", type=float, help="stop END seconds after the recording's start")
-    parser.add_argument("--check", action="store_true", help="read and verify the whole file, publish nothing")
+    parser.add_argument("--check", action="store_true",
+                        help="read and verify the whole file, publish nothing; exit 0 complete, 1 truncated "
+                             "(read up to its last complete record), 2 corrupt")
+    parser.add_argument("--robot-keys", action="store_true",
+                        help="also publish robot state and commands (robonav/*/robot/**, robonav/*/executor/**: "
+                             "joint states, setpoints, executor status); a live cell's arm and clients take them as real")
+    parser.add_argument("--cell", help="publish under robonav/CELL/ instead of the recorded cell")
     parser.add_argument("--wait-subscribers", type=float, default=2.0, metavar="S",
                         help="wait up to S seconds for a subscriber before publishing (default 2)")
     parser.add_argument("--config", help="YAML config (Zenoh connection)")
+    parser.add_argument("--zenoh-config", metavar="FILE",
+                        help="Zenoh JSON5 config (TLS, login, e.g. client-viewer.json5); overrides zenoh.config_file")
     parser.add_argument("--json", help="write the summary (counts, timing error) to this file")
     parser.add_argument("--log-level", default="INFO")
     return parser.parse_args(argv)
 
 
 def check(recording: Recording) -> dict[str, Any]:
-    """Read every message (decompressing and checking every chunk's CRC); counts per key."""
+    """Read every message (decompressing and checking every chunk's CRC); counts per key, and
+    what the recorder counted (written, dropped, missed upstream, lost when it was killed)."""
     counts: Counter[str] = Counter()
     for message in recording.messages():
         counts[message.key] += 1
     expected = recording.info.message_counts
     if dict(counts) != {k: v for k, v in expected.items() if v}:
         raise RecordingError(recording.path, 0, f"message counts {dict(counts)} differ from the summary's {expected}")
-    return {"file": str(recording.path), "messages": sum(counts.values()), "per_key": dict(sorted(counts.items())),
-            "duration_s": round(recording.info.duration_s, 3)}
+    summary: dict[str, Any] = {"file": str(recording.path), "complete": recording.complete,
+                               "messages": sum(counts.values()), "per_key": dict(sorted(counts.items())),
+                               "duration_s": round(recording.info.duration_s, 3)}
+    if not recording.complete:
+        assert recording.truncated_at is not None
+        summary.update(truncated_at=recording.truncated_at, lost_bytes=recording.size - recording.truncated_at)
+    stats = recording.stats()
+    if stats is not None:
+        summary["recorder"] = {key: stats.get(key) for key in ("received", "written", "dropped", "missed_upstream",
+                                                                  "recorder_finished", "lost_at_recorder_exit")}
+    return summary
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -216,23 +269,35 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(args.log_level)
     try:
         options = ReplayOptions(rate=None if args.rate == "max" else float(args.rate), loop=args.loop,
-                                keys=tuple(args.keys), start_s=args.start, end_s=args.end)
+                                keys=tuple(args.keys), start_s=args.start, end_s=args.end, robot_keys=args.robot_keys,
+                                cell=args.cell)
         for key in options.keys:
             zenoh.KeyExpr(key)
         cfg = load_config(args.config)
-        recording = Recording(args.file)
+        if args.zenoh_config is not None:
+            cfg = dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config))
+        recording = Recording(args.file, recover=True)
+        if not recording.complete:
+            log.warning("%s is truncated (its writer was killed): reading its %d bytes up to byte %d, its last "
+                        "complete record; %d bytes after it are lost", args.file, recording.size,
+                        recording.truncated_at, recording.size - (recording.truncated_at or 0))
         if args.check:
             summary = check(recording)
             _report(summary, args.json)
-            return 0
+            return 0 if recording.complete else 1
     except (ValueError, ConfigError, zenoh.ZError, RecordingError) as exc:
         log.error("%s", exc)
         return 2
     stop = stop_on_signals(signal.SIGINT, signal.SIGTERM)
     with open_session(cfg.zenoh) as session:
         replayer = Replayer(session, recording, options)
+        if replayer.skipped:
+            log.warning("not replaying robot state and commands (%s: %d messages); --robot-keys publishes them",
+                        ", ".join(sorted(replayer.skipped)), sum(replayer.skipped.values()))
+        elif options.robot_keys:
+            warn_live(session, recording, options)
         if not replayer.publishers:
-            log.error("no recorded key matches %s (recorded: %s)", list(options.keys),
+            log.error("no recorded key to replay matches %s (recorded: %s)", list(options.keys) or "**",
                       sorted(recording.info.message_counts))
             return 2
         if not replayer.wait_for_subscribers(args.wait_subscribers):
@@ -246,8 +311,22 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         finally:
             replayer.close()
-    _report(result.summary(), args.json)
+    _report({**result.summary(), "skipped": dict(sorted(replayer.skipped.items())), "cell": options.cell,
+             "complete": recording.complete}, args.json)
     return 0
+
+
+def warn_live(session: zenoh.Session, recording: Recording, options: ReplayOptions) -> None:
+    """Say so when robot state and commands go into a cell whose services are running."""
+    cells = {in_cell(k, options.cell).split("/")[1] for k in recording.info.message_counts
+             if is_robot_key(k) and k.startswith("robonav/")}
+    for cell in sorted(cells):
+        alive = {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in session.liveliness().get(f"robonav/{cell}/alive/*",
+                                                                                          timeout=1.0)
+                 if r.ok is not None} - {"router"}
+        if alive:
+            log.warning("replaying robot state and commands into cell %s, where %s are running: they take them as "
+                        "real (--cell NAME replays into another cell)", cell, ", ".join(sorted(alive)))
 
 
 def _report(summary: dict[str, Any], json_path: str | None) -> None:

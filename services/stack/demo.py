@@ -1,6 +1,8 @@
 """`robonav demo`: bring the stack up, plan and execute the configured goals, print a JSON summary.
 
 Exit code 0 only if every goal was reached within tolerance with zero robot–obstacle contacts.
+Ctrl-C stops the arm and waits until it rests, then stops the services and reports the goals
+done so far (exit code 130).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from robonav.services.common import open_session, setup_logging, stop_on_signals
 from robonav.services.config import RobonavConfig, default_config_path, load_config
 from robonav.services.keys import SERVICES
 from robonav.services.stack.up import Stack
+from robonav.services.tools.stop import EXIT_INTERRUPTED, Interrupt, stop_after_interrupt, wait_or_interrupt
 from robonav.services.view.snapshot import snapshot_view
 
 log = logging.getLogger("robonav.demo")
@@ -52,7 +55,7 @@ def true_scene(cfg: RobonavConfig) -> CollisionWorld:
 
 
 def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, index: int, goal: np.ndarray,
-             seed: int) -> dict[str, Any]:
+             seed: int, interrupt: Interrupt) -> dict[str, Any]:
     assert client.joint_state is not None
     start = client.joint_state.position.copy()
     # Blocked means the goal needs a detour around a real obstacle.
@@ -66,6 +69,9 @@ def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, i
     record.update(planning_ms=round(plan.planning_time_s * 1e3, 2), path_length_rad=round(plan.path_length_rad, 4),
                   waypoints=plan.waypoint_count,
                   min_clearance_m=None if plan.min_clearance_m is None else round(plan.min_clearance_m, 4))
+    if interrupt.is_set():  # Ctrl-C while planning: do not start the motion
+        record.update(reached=False, interrupted=True)
+        return record
     started = time.monotonic()
     # A map that changes under the moving arm (noise, a newly seen surface) should cost a
     # replan, not the goal.
@@ -74,7 +80,13 @@ def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, i
         record.update(reached=False, error=f"execute: {execution.code}: {execution.message}")
         return record
     assert isinstance(execution, ExecuteResponse)
-    result = client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + cfg.demo.goal_timeout_s)
+    trajectory_id = execution.trajectory_id
+    wait_or_interrupt(client, lambda: client.trajectory_finished(trajectory_id),
+                      execution.duration_s + cfg.demo.goal_timeout_s, interrupt)
+    if interrupt.is_set() and not client.trajectory_finished(trajectory_id):
+        record.update(reached=False, interrupted=True, stop=stop_after_interrupt(client, interrupt))
+        return record
+    result = client.wait_for_trajectory(trajectory_id, 0.0)
     # The arm lags the last setpoint a little (and more on a loaded machine): let it settle
     # well inside the tolerance, or give up after a while and judge where it is.
     client.wait_for(lambda: float(np.max(np.abs(client.joint_state.position - goal))) <= 0.1 * cfg.demo.goal_tolerance_rad,
@@ -105,16 +117,22 @@ def run_demo(cfg: RobonavConfig, config_path: Path, seed: int, *, view_port: int
                                    cfg.demo.first_map_timeout_s):
                 raise RuntimeError(f"no occupancy map within {cfg.demo.first_map_timeout_s:.0f} s")
             summary["first_map_s"] = round(time.monotonic() - started, 2)
-            for index, goal in enumerate(cfg.demo.goals_rad):
-                # Plan on a map taken with the arm at rest, so no trace of its motion remains.
-                at_rest = time.time()
-                client.wait_for(lambda: client.occupancy is not None and client.occupancy.stamp > at_rest, 5.0)
-                try:
-                    record = run_goal(client, truth, cfg, index, np.asarray(goal, float), seed)
-                except QueryFailed as exc:
-                    record = {"index": index, "reached": False, "error": str(exc)}
-                log.info("goal %d: %s", index, record)
-                summary["goals"].append(record)
+            with Interrupt() as interrupt:
+                for index, goal in enumerate(cfg.demo.goals_rad):
+                    # Plan on a map taken with the arm at rest, so no trace of its motion remains.
+                    at_rest = time.time()
+                    client.wait_for(lambda: client.occupancy is not None and client.occupancy.stamp > at_rest, 5.0)
+                    if interrupt.is_set():
+                        break
+                    try:
+                        record = run_goal(client, truth, cfg, index, np.asarray(goal, float), seed, interrupt)
+                    except QueryFailed as exc:
+                        record = {"index": index, "reached": False, "error": str(exc)}
+                    log.info("goal %d: %s", index, record)
+                    summary["goals"].append(record)
+                    if interrupt.is_set():
+                        break
+            summary["interrupted"] = interrupt.is_set()
             contacts = client.contacts()
             if isinstance(contacts, ErrorReply):
                 raise RuntimeError(f"contacts query failed: {contacts.code}: {contacts.message}")
@@ -122,7 +140,7 @@ def run_demo(cfg: RobonavConfig, config_path: Path, seed: int, *, view_port: int
                            min_obstacle_distance_m=None if contacts.min_distance_m is None else round(contacts.min_distance_m, 4))
             if snapshot is not None:
                 summary.update(snapshot_view(cfg, snapshot))
-            if view_port is not None:
+            if view_port is not None and not summary["interrupted"]:
                 log.warning("demo done; the view stays on http://127.0.0.1:%d until Ctrl-C", view_port)
                 stop_on_signals(signal.SIGINT, signal.SIGTERM).wait()
             client.close()
@@ -165,5 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     print(text)
     if args.json_path:
         Path(args.json_path).write_text(text + "\n", encoding="utf-8")
+    if summary.get("interrupted"):
+        return EXIT_INTERRUPTED
     ok = summary["reached"] == summary["goal_count"] and summary["contacts"] == 0 and "snapshot_error" not in summary
     return 0 if ok else 1

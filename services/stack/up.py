@@ -1,7 +1,9 @@
 """`robonav up`: an in-process Zenoh router plus every service as its own process.
 
 Each service gets its own process so the 1 kHz executor loop does not share a GIL with
-rendering, ray casting or planning.
+rendering, ray casting or planning. Each runs in a session of its own, so a Ctrl-C in the
+terminal reaches only the command that started them: it stops the arm and waits for rest
+(`robonav demo`, `robonav campaign`) before `close` stops the services in turn.
 """
 
 from __future__ import annotations
@@ -40,13 +42,13 @@ class Stack:
             cmd = [sys.executable, "-m", "robonav.services.cli", "serve", name, "--log-level", log_level]
             if config_path is not None:
                 cmd += ["--config", str(Path(config_path).resolve())]
-            self.processes[name] = subprocess.Popen(cmd)
+            self.processes[name] = subprocess.Popen(cmd, start_new_session=True)
             log.info("started %s (pid %d)", name, self.processes[name].pid)
         if view_port is not None:  # `robonav view`, in its own process like a service
             cmd = [sys.executable, "-m", "robonav.services.cli", "view", "--port", str(view_port), "--log-level", log_level]
             if config_path is not None:
                 cmd += ["--config", str(Path(config_path).resolve())]
-            self.processes["view"] = subprocess.Popen(cmd)
+            self.processes["view"] = subprocess.Popen(cmd, start_new_session=True)
             log.info("started view on port %d (pid %d)", view_port, self.processes["view"].pid)
 
     def dead(self) -> dict[str, int]:

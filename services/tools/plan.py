@@ -6,7 +6,10 @@
 One planner answers (Zenoh's best match) unless `--race`, which asks every planner and takes
 the first valid plan. Prints one JSON object; exit code 0 when the plan (and the execution)
 succeeded, 1 on a structured error or a failed execution, 2 on a bad config, 3 when nothing
-answered within `--timeout` (no service, a dead planner, or access control refused us).
+answered within `--timeout` (no service, a dead planner, or access control refused us), 130
+after Ctrl-C. Ctrl-C (SIGINT, or SIGTERM) while the arm moves sends `executor/stop` and waits
+until it rests before exiting (a second Ctrl-C: an emergency stop); before the execute was
+sent, nothing moves.
 """
 
 from __future__ import annotations
@@ -26,8 +29,16 @@ from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, PlanRequ
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.common import open_session, to_zenoh_config
 from robonav.services.config import load_config
-
-EXIT_OK, EXIT_FAILED, EXIT_CONFIG, EXIT_NO_REPLY = 0, 1, 2, 3
+from robonav.services.tools.stop import (
+    EXIT_CONFIG,
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_NO_REPLY,
+    EXIT_OK,
+    Interrupt,
+    stop_after_interrupt,
+    wait_or_interrupt,
+)
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -44,6 +55,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int)
     parser.add_argument("--race", action="store_true", help="ask every planner, take the first valid plan")
     parser.add_argument("--execute", action="store_true", help="execute the path and wait until it finishes")
+    parser.add_argument("--velocity-scaling", type=float, metavar="F",
+                        help="with --execute: scale the velocity and acceleration limits by F in (0, 1] "
+                             "(MoveIt's max_velocity_scaling_factor; default: the executor's)")
     parser.add_argument("--replan", action="store_true",
                         help="with --execute: when a new obstacle blocks the path, stop and plan again (else stop with PATH_BLOCKED)")
     parser.add_argument("--timeout", type=float, default=30.0, help="per query [s]")
@@ -53,7 +67,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def plan_and_execute(client: RobonavClient, args: argparse.Namespace) -> tuple[int, dict[str, Any]]:
+def plan_and_execute(client: RobonavClient, args: argparse.Namespace, interrupt: Interrupt) -> tuple[int, dict[str, Any]]:
     request = PlanRequest(
         goal_positions=None if args.goal is None else np.asarray(args.goal, float),
         goal_position_m=None if args.pose is None else np.asarray(args.pose, float),
@@ -74,15 +88,27 @@ def plan_and_execute(client: RobonavClient, args: argparse.Namespace) -> tuple[i
                   goal_positions=np.round(plan.path[-1], 5).tolist())
     if not args.execute:
         return EXIT_OK, record
+    if interrupt.is_set():  # Ctrl-C while planning: nothing has moved, nothing will
+        record.update(ok=False, stage="interrupted", interrupted=True)
+        return EXIT_INTERRUPTED, record
+    scaling = args.velocity_scaling
     execution = client.execute(plan.path, joint_names=plan.joint_names, timeout_s=args.timeout, replan=args.replan,
-                               occupancy_stamp=plan.occupancy_stamp)
+                               occupancy_stamp=plan.occupancy_stamp, max_velocity_scaling_factor=scaling,
+                               max_acceleration_scaling_factor=scaling)
     if isinstance(execution, ErrorReply):
         record.update(ok=False, stage="execute", code=execution.code, message=execution.message, details=execution.details)
         return EXIT_FAILED, record
     assert isinstance(execution, ExecuteResponse)
-    result = client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + args.timeout)
-    record.update(trajectory_id=execution.trajectory_id, duration_s=round(execution.duration_s, 3), result=result,
-                  ok=result == "succeeded")
+    record.update(trajectory_id=execution.trajectory_id, duration_s=round(execution.duration_s, 3))
+    trajectory_id = execution.trajectory_id
+    wait_or_interrupt(client, lambda: client.trajectory_finished(trajectory_id), execution.duration_s + args.timeout,
+                      interrupt)
+    if interrupt.is_set() and not client.trajectory_finished(trajectory_id):
+        record.update(ok=False, stage="interrupted", interrupted=True, stop=stop_after_interrupt(client, interrupt),
+                      result=client.wait_for_trajectory(trajectory_id, 0.0))
+        return EXIT_INTERRUPTED, record
+    result = client.wait_for_trajectory(trajectory_id, 0.0)
+    record.update(result=result, ok=result == "succeeded")
     return (EXIT_OK if result == "succeeded" else EXIT_FAILED), record
 
 
@@ -90,6 +116,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.quat is not None and args.pose is None:
         print("robonav plan: --quat needs --pose", file=sys.stderr)
+        return EXIT_CONFIG
+    if args.velocity_scaling is not None and not 0 < args.velocity_scaling <= 1:
+        print(f"robonav plan: --velocity-scaling must be in (0, 1], got {args.velocity_scaling}", file=sys.stderr)
         return EXIT_CONFIG
     try:
         cfg = load_config(args.config)
@@ -103,10 +132,10 @@ def main(argv: list[str] | None = None) -> int:
     except zenoh.ZError as exc:
         print(f"robonav plan: cannot reach the router at {', '.join(zcfg.connect)}: {exc}", file=sys.stderr)
         return EXIT_NO_REPLY
-    with session:
+    with session, Interrupt() as interrupt:
         client = RobonavClient(session, cfg.cell)
         try:
-            code, record = plan_and_execute(client, args)
+            code, record = plan_and_execute(client, args, interrupt)
         except QueryFailed as exc:
             code, record = EXIT_NO_REPLY, {"ok": False, "stage": "no_reply", "message": str(exc)}
         except ValueError as exc:  # a request the message classes refuse (e.g. a NaN goal)

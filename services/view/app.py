@@ -10,7 +10,9 @@ headless Chromium and writes it as a PNG.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
+import os
 import signal
 import sys
 import threading
@@ -31,6 +33,7 @@ from robonav.services.client import RobonavClient
 from robonav.services.common import declare_latched_subscriber, open_session, setup_logging, stop_on_signals
 from robonav.services.config import RobonavConfig, load_config, perceived_world_from_camera
 from robonav.services.keys import Keys
+from robonav.services.view.gate import TOKEN_ENV, TokenGate, is_loopback, new_token
 
 log = logging.getLogger("robonav.view")
 
@@ -45,7 +48,8 @@ CAMERA_FOV_RAD = 0.87
 @dataclass(frozen=True)
 class ViewOptions:
     host: str = "127.0.0.1"
-    """Address the page is served on; 0.0.0.0 makes it reachable from other machines."""
+    """Address the page is served on; 0.0.0.0 makes it reachable from other machines, and then
+    only with `token` (`gate.py`): the page commands the robot."""
     port: int = DEFAULT_PORT
     """HTTP and websocket port; 0 picks a free one, a busy one moves to the next free port."""
     rate_hz: float = 30.0
@@ -58,9 +62,15 @@ class ViewOptions:
     """Most occupancy redraws per second [Hz]; unchanged maps are not resent at all."""
     path_step_rad: float = 0.05
     """Joint step between samples of the end-effector trace [rad]."""
+    token: str | None = None
+    """Required on any address but loopback: the page and its websocket are served only to a
+    browser that opened `...?token=<token>` (then a cookie)."""
 
     def __post_init__(self) -> None:
         require(0 <= self.port < 65536, f"view port must be in [0, 65535], got {self.port}")
+        require(is_loopback(self.host) or bool(self.token),
+                f"the view on {self.host} would serve Plan/Execute/Stop to anyone who reaches it: give it a token "
+                f"({TOKEN_ENV} or --token-file), or serve it on 127.0.0.1")
         for key in ("rate_hz", "cloud_rate_hz", "map_rate_hz", "path_step_rad"):
             require(getattr(self, key) > 0, f"view {key} must be > 0, got {getattr(self, key)}")
         require(self.max_cloud_points > 0, f"view max_cloud_points must be > 0, got {self.max_cloud_points}")
@@ -98,7 +108,17 @@ class ViewNode:
         self.cameras = {camera.camera_id: camera for camera in cameras_of(cfg)}
         # Clouds are drawn where perception puts them: at the calibrated pose when there is one.
         self._world_from_camera = {cam_id: perceived_world_from_camera(camera) for cam_id, camera in self.cameras.items()}
-        self.server = viser.ViserServer(host=options.host, port=options.port, verbose=False)
+        self.gate: TokenGate | None = None
+        if is_loopback(options.host):
+            self.server = viser.ViserServer(host=options.host, port=options.port, verbose=False)
+        else:  # viser stays on loopback; the gate serves the address asked for, to token holders only
+            self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+            assert options.token is not None
+            try:
+                self.gate = TokenGate(options.host, options.port, int(self.server.get_port()), options.token)
+            except OSError:
+                self.server.stop()
+                raise
         self.server.gui.configure_theme(show_share_button=False)
         self.server.gui.main_panel.dock_right()  # beside the 3D view, not over it
         # Shadow maps cost more than the whole scene when WebGL renders in software, and a
@@ -131,16 +151,20 @@ class ViewNode:
         self.drawn_cameras: set[str] = set()
         self.paused = threading.Event()
         """While set, nothing is redrawn (a snapshot waits for a still picture)."""
-        log.info("view: http://%s:%d", options.host if options.host != "0.0.0.0" else "localhost", self.port)
+        if self.gate is None:
+            log.info("view: %s", self.url)
 
     @property
     def port(self) -> int:
-        return int(self.server.get_port())
+        return self.gate.port if self.gate is not None else int(self.server.get_port())
 
     @property
     def url(self) -> str:
-        host = "127.0.0.1" if self.options.host in ("0.0.0.0", "") else self.options.host
-        return f"http://{host}:{self.port}/"
+        """The page's address (with the token when gated: the first visit trades it for a cookie)."""
+        host = "127.0.0.1" if self.options.host in ("0.0.0.0", "::", "") else self.options.host
+        host = f"[{host}]" if ":" in host else host
+        token = f"?token={self.options.token}" if self.gate is not None else ""
+        return f"http://{host}:{self.port}/{token}"
 
     def _count_error(self, kind: str, exc: Exception) -> None:
         self.stats.errors[kind] = self.stats.errors.get(kind, 0) + 1
@@ -291,6 +315,8 @@ class ViewNode:
         for sub in (self._cloud_sub, self._path_sub, self._clusters_sub):
             sub.undeclare()
         self.client.close()
+        if self.gate is not None:
+            self.gate.close()
         self.server.stop()
 
 
@@ -298,7 +324,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="robonav view", description=__doc__.split("\n\n")[0] + " `robonav view bench --help` measures it.")
     parser.add_argument("--config", help="YAML config file (default: the packaged configs/default.yaml)")
-    parser.add_argument("--host", default=ViewOptions.host, help="address to serve the page on (default %(default)s)")
+    parser.add_argument("--zenoh-config", metavar="FILE",
+                        help="Zenoh JSON5 config (TLS, login: client-viewer.json5, or client-operator.json5 for the "
+                             "controls); overrides zenoh.config_file")
+    parser.add_argument("--host", default=ViewOptions.host,
+                        help="address to serve the page on (default %(default)s); any other than loopback needs "
+                             f"a token: --token-file, else {TOKEN_ENV}, else a new one is printed at start")
+    parser.add_argument("--token-file", metavar="FILE", help="file holding the token for a non-loopback --host")
     parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="port of the page; 0 = any free one (default %(default)s)")
     parser.add_argument("--max-cloud-points", type=int, default=ViewOptions.max_cloud_points,
                         help="points per camera sent to the browser (default %(default)s)")
@@ -311,6 +343,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def view_token(args: argparse.Namespace) -> str | None:
+    """The token for a non-loopback host: from --token-file, else the environment, else a new one."""
+    if is_loopback(args.host):
+        return None
+    if args.token_file:
+        try:
+            token = Path(args.token_file).read_text(encoding="utf-8").strip()
+        except OSError as exc:
+            raise ValueError(f"--token-file {args.token_file}: {exc.strerror or exc}") from exc
+        require(bool(token), f"--token-file {args.token_file} is empty")
+        return token
+    return os.environ.get(TOKEN_ENV) or new_token()
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["bench"]:
@@ -321,8 +367,10 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(args.log_level)
     try:
         cfg = load_config(args.config)
+        if args.zenoh_config is not None:
+            cfg = dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config))
         options = ViewOptions(host=args.host, port=args.port, max_cloud_points=args.max_cloud_points,
-                              cloud_rate_hz=args.cloud_rate_hz)
+                              cloud_rate_hz=args.cloud_rate_hz, token=view_token(args))
         width, height = (int(v) for v in args.size.lower().split("x"))
         require(width > 0 and height > 0, f"--size must be WIDTHxHEIGHT in pixels, got {args.size!r}")
     except (ConfigError, ValueError) as exc:
@@ -340,6 +388,11 @@ def main(argv: list[str] | None = None) -> int:
         except ImportError as exc:
             log.error("robonav view needs the `view` extra (pip install 'robonav-arm[view]'): %s", exc)
             return 2
+        except OSError as exc:
+            log.error("view: cannot serve on %s:%d: %s", options.host, options.port, exc)
+            return 1
+        if node.gate is not None:  # the address with the token, for whoever started the view
+            print(f"view: {node.url}", flush=True)
         try:
             if args.snapshot:
                 node.start()

@@ -158,7 +158,7 @@ def test_record_then_replay_is_byte_exact(sessions: Callable[[], zenoh.Session],
     assert by_key(recorded) == by_key(sent)
     assert recording.info.message_counts == {k: len(v) for k, v in by_key(sent).items()}
 
-    replayed = collect_replay(sessions, path, ReplayOptions(rate=None), len(sent))
+    replayed = collect_replay(sessions, path, ReplayOptions(rate=None, robot_keys=True), len(sent))
     assert by_key(replayed) == by_key(sent)
 
 
@@ -201,7 +201,7 @@ def test_replay_filters_keys_and_time(sessions: Callable[[], zenoh.Session], tmp
     path = tmp_path / "run.mcap"
     record(sessions, path, sent)
     joint_states = [p for k, p in sent if k == JOINT_KEY]
-    replayed = collect_replay(sessions, path, ReplayOptions(rate=None, keys=("**/joint_states",)), len(joint_states))
+    replayed = collect_replay(sessions, path, ReplayOptions(rate=None, keys=("**/joint_states",), robot_keys=True), len(joint_states))
     assert by_key(replayed) == {JOINT_KEY: joint_states}
 
     recording = Recording(path)
@@ -240,11 +240,14 @@ def test_damaged_files_fail_naming_the_offset(sessions: Callable[[], zenoh.Sessi
     with pytest.raises(RecordingError, match="byte offset 0: not an MCAP file"):
         Recording(garbage)
 
-    # The command says the same and exits with 2, publishing nothing.
-    for bad in (truncated, corrupt):
-        caplog.clear()
-        assert replay.main([str(bad), "--check"]) == 2
-        assert "byte offset" in caplog.text
+    # The command says the same and exits with 2, publishing nothing; a truncated file is read
+    # up to its last complete record (exit 1: readable, but not all there).
+    caplog.clear()
+    assert replay.main([str(corrupt), "--check"]) == 2
+    assert "byte offset" in caplog.text
+    caplog.clear()
+    assert replay.main([str(truncated), "--check"]) == 1
+    assert f"up to byte {info.value.offset}" in caplog.text
 
 
 def _chunk_offsets(path: Path) -> list[int]:
@@ -320,7 +323,7 @@ def test_replay_loops_until_stopped(sessions: Callable[[], zenoh.Session], tmp_p
             stop.set()
 
     sub = sessions().declare_subscriber(JOINT_KEY, on_sample)
-    replayer = Replayer(sessions(), Recording(path), ReplayOptions(rate=None, loop=True))
+    replayer = Replayer(sessions(), Recording(path), ReplayOptions(rate=None, loop=True, robot_keys=True))
     assert replayer.wait_for_subscribers(10.0)
     result = replayer.run(stop)
     replayer.close()

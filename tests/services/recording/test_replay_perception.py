@@ -132,7 +132,7 @@ def test_two_replays_build_identical_maps(new_session, tmp_path: Path) -> None: 
                 received.append((str(sample.key_expr), sample.payload.to_bytes()))
 
         sub = new_session().declare_subscriber("robonav/pr/**", on_sample)
-        replayer = Replayer(new_session(), Recording(path), ReplayOptions(rate=None))
+        replayer = Replayer(new_session(), Recording(path), ReplayOptions(rate=None, robot_keys=True))
         assert replayer.wait_for_subscribers(10.0)
         replayer.run(threading.Event())
         assert _wait_for(lambda received=received: len(received) == len(sent))

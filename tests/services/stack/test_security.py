@@ -7,9 +7,8 @@ client configs, all run in a directory where `gen_certs.sh` wrote fresh certific
 
 from __future__ import annotations
 
-import contextlib
+import os
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -23,14 +22,13 @@ import zenoh
 from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.messages import ErrorReply, ExecutorStatus, StopResponse
 from robonav.services.client import QueryFailed, RobonavClient
-from robonav.services.common import to_zenoh_config
-from robonav.services.config import ZenohConfig, load_config
+from robonav.services.config import load_config
+from robonav.services.stack.roles import forged_delivered, logins, probe_roles
+from robonav.services.stack.secrets import DEV_STACK_ENV, EXAMPLE_PASSWORD
 
-from ...conftest import REPO_ROOT
 from ..conftest import free_port, write_config
+from .secure_cell import SECURITY_DIR, START_TIMEOUT_S, make_cell_dir, refused, router, running, session
 
-SECURITY_DIR = REPO_ROOT / "configs" / "security"
-START_TIMEOUT_S = 30.0
 REQUEST_LIMIT_BYTES = 64 * 1024
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="gen_certs.sh needs the openssl command")
@@ -38,64 +36,7 @@ pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="gen_cer
 
 @pytest.fixture(scope="module")
 def cell_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The example configs and credentials beside freshly generated certificates (their relative paths)."""
-    directory = tmp_path_factory.mktemp("security")
-    for path in SECURITY_DIR.iterdir():
-        if path.suffix in (".json5", ".txt"):
-            shutil.copy(path, directory / path.name)
-    subprocess.run(["bash", str(SECURITY_DIR / "gen_certs.sh"), "certs"], cwd=directory, check=True,
-                   capture_output=True)
-    return directory
-
-
-def wait_for_port(port: int, proc: subprocess.Popen[bytes]) -> None:
-    deadline = time.monotonic() + START_TIMEOUT_S
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, f"router exited with {proc.returncode}"
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return
-        time.sleep(0.05)
-    raise TimeoutError(f"nothing listens on port {port}")
-
-
-@contextlib.contextmanager
-def running(cmd: list[str], cwd: Path) -> Iterator[subprocess.Popen[bytes]]:
-    proc = subprocess.Popen([sys.executable, "-m", "robonav.services.cli", *cmd, "--log-level", "WARNING"], cwd=cwd)
-    try:
-        yield proc
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
-@contextlib.contextmanager
-def router(cell_dir: Path, zenoh_config: str) -> Iterator[int]:
-    """`robonav router` with one of the example router configs, listening on a free TLS port."""
-    port = free_port()
-    config = write_config(cell_dir, f"router-{port}.yaml", zenoh={"connect": [f"tls/localhost:{port}"]})
-    with running(["router", "--config", str(config), "--zenoh-config", zenoh_config,
-                  "--listen", f"tls/127.0.0.1:{port}"], cell_dir) as proc:
-        wait_for_port(port, proc)
-        yield port
-
-
-def session(cell_dir: Path, endpoint: str, zenoh_config: str | None, *, connect_timeout_ms: int = 5000) -> zenoh.Session:
-    cfg = ZenohConfig(connect=(endpoint,), config_file=zenoh_config)
-    with contextlib.chdir(cell_dir):  # the example configs name certificates relative to their directory
-        zcfg = to_zenoh_config(cfg)
-        zcfg.insert_json5("connect/timeout_ms", str(connect_timeout_ms))
-        return zenoh.open(zcfg)
-
-
-def refused(cell_dir: Path, endpoint: str, zenoh_config: str | None) -> None:
-    """Opening a session fails (Zenoh retries a refused handshake until its connect timeout)."""
-    with pytest.raises(zenoh.ZError):
-        session(cell_dir, endpoint, zenoh_config, connect_timeout_ms=1000)
+    return make_cell_dir(tmp_path_factory.mktemp("security"))
 
 
 def round_trip(server: zenoh.Session, client: zenoh.Session) -> list[bytes]:
@@ -203,3 +144,42 @@ def test_an_unusable_zenoh_config_is_a_config_error(cell_dir: Path) -> None:
                               text=True, timeout=60)
         assert done.returncode == 2, done.stderr
         assert f"{name}: key '<file>': not a usable Zenoh config" in done.stderr
+
+
+def test_example_passwords_are_refused_outside_a_development_stack(cell_dir: Path) -> None:
+    port = free_port()
+    config = write_config(cell_dir, "refuse.yaml", zenoh={"connect": [f"tls/localhost:{port}"]})
+    env = {k: v for k, v in os.environ.items() if k != DEV_STACK_ENV}
+    for cmd in (["router", "--listen", f"tls/127.0.0.1:{port}", "--zenoh-config", "router-acl.json5"],
+                ["serve", "planner", "--zenoh-config", "client-planner.json5"]):
+        done = subprocess.run([sys.executable, "-m", "robonav.services.cli", *cmd, "--config", str(config)],
+                              cwd=cell_dir, env=env, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2, done.stderr
+        assert "example password" in done.stderr and DEV_STACK_ENV in done.stderr
+
+
+def test_setup_cell_gives_each_identity_its_own_secrets(tmp_path: Path) -> None:
+    secrets = tmp_path / "security"
+    subprocess.run(["bash", str(SECURITY_DIR / "setup_cell.sh"), str(secrets)], check=True, capture_output=True)
+    passwords = dict(line.split(":", 1) for line in (secrets / "router" / "credentials.txt").read_text().splitlines())
+    assert set(passwords) == {"sim", "perception", "planner", "executor", "operator", "viewer", "health"}
+    assert all(len(p) == 32 and not EXAMPLE_PASSWORD.match(p) for p in passwords.values())
+    # Each identity's directory holds its own password and the CA certificate, nothing else secret;
+    # only ca/ holds the CA's key.
+    for directory in [d for d in secrets.iterdir() if d.name not in ("ca", "router")]:
+        files = sorted(str(p.relative_to(directory)) for p in directory.rglob("*") if p.is_file())
+        assert files == ["certs/ca.pem", f"client-{directory.name}.json5"], files
+        text = (directory / f"client-{directory.name}.json5").read_text()
+        assert [user for user, p in passwords.items() if p in text] == [directory.name]
+    assert [p.relative_to(secrets) for p in secrets.rglob("ca.key")] == [Path("ca/ca.key")]
+    # The cell starts without the development flag, and its identities log in.
+    env = {k: v for k, v in os.environ.items() if k != DEV_STACK_ENV}
+    with router(secrets / "router", "router-acl.json5", env) as port:
+        endpoint = f"tls/localhost:{port}"
+        with session(secrets / "sim", endpoint, "client-sim.json5") as a, \
+                session(secrets / "viewer", endpoint, "client-viewer.json5") as b:
+            assert a.info.zid() != b.info.zid()
+        shutil.copy(SECURITY_DIR / "client-viewer.json5", secrets / "viewer" / "client-example.json5")
+        refused(secrets / "viewer", endpoint, "client-example.json5")  # the example password is not the cell's
+        # Its identities keep to their roles (the cell's own passwords, one directory each).
+        assert forged_delivered(probe_roles(logins(secrets, endpoint))) == 0
