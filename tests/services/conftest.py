@@ -43,6 +43,18 @@ def write_config(directory: Path, name: str, **sections: dict) -> Path:
     return path
 
 
+@pytest.fixture
+def bus() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
+    """A router on a free port and two client sessions through it: (service side, client side)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
+    service = open_session(ZenohConfig(connect=(endpoint,)))
+    client = open_session(ZenohConfig(connect=(endpoint,)))
+    yield service, client
+    for s in (client, service, router):
+        s.close()
+
+
 @pytest.fixture(scope="session")
 def stack_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
     # Kinematic following makes the arm track setpoints exactly, so results do not depend on

@@ -24,7 +24,7 @@ from robonav.pipeline.wire.messages import (
     Setpoint,
     StopResponse,
 )
-from robonav.services.client import RobonavClient
+from robonav.services.client import RobonavClient, reply_message
 from robonav.services.common import declare_latched_publisher, open_session
 from robonav.services.config import ZenohConfig, load_config
 from robonav.services.executor.node import ExecutorNode
@@ -161,11 +161,10 @@ def _raw_execute(client: RobonavClient, path: np.ndarray) -> ErrorReply | Execut
     """An execute request encoded by hand, so shapes the Python constructor refuses can be sent."""
     payload = msgpack.unpackb(ExecuteRequest(path=HOME[None, :]).to_wire())
     payload["path"] = {"dtype": "<f8", "shape": list(path.shape), "data": path.astype("<f8").tobytes()}
+    started = time.monotonic()
     replies = client.session.get(client.keys.execute, payload=msgpack.packb(payload), timeout=5.0)
     for reply in replies:
-        if reply.ok is not None:
-            return ExecuteResponse.from_wire(reply.ok.payload.to_bytes())
-        return ErrorReply.from_wire(reply.err.payload.to_bytes())
+        return reply_message(reply, client.keys.execute, ExecuteResponse, 5.0, started)
     raise AssertionError("no reply")
 
 
