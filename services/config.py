@@ -42,9 +42,12 @@ class ZenohConfig:
 class LimitsConfig:
     max_request_bytes: int = 16 * 1024 * 1024
     """Query payloads larger than this are refused with PAYLOAD_TOO_LARGE [bytes]."""
+    max_queued_requests: int = 8
+    """Requests that may wait for a busy worker (planner/plan, executor/execute); more: BUSY."""
 
     def __post_init__(self) -> None:
         require(self.max_request_bytes > 0, f"limits.max_request_bytes must be > 0, got {self.max_request_bytes}")
+        require(self.max_queued_requests >= 1, f"limits.max_queued_requests must be >= 1, got {self.max_queued_requests}")
 
 
 @dataclass(frozen=True)

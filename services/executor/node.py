@@ -53,6 +53,7 @@ from robonav.services.config import RobonavConfig
 from robonav.services.executor.path_monitor import Execution, PathMonitor
 from robonav.services.executor.setpoint_stream import SetpointStream, StreamStats
 from robonav.services.keys import Keys
+from robonav.services.workers import RequestWorkers
 
 log = logging.getLogger("robonav.executor")
 
@@ -110,8 +111,12 @@ class ExecutorNode(Node):
         # keep the cyclic collector's full passes short.
         sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
         gc.freeze()
+        # An execute (time parameterisation: corner blends) runs on a worker thread, one at a time in
+        # arrival order; a stop is short and is answered on Zenoh's callback thread, never behind one.
+        self._workers = RequestWorkers("executor", lambda query, _worker: self.handle_execute(query), workers=1,
+                                       queue_size=cfg.limits.max_queued_requests)
         self._queryables = [
-            session.declare_queryable(keys.execute, guarded_queryable(self.handle_execute, "executor")),
+            session.declare_queryable(keys.execute, self._workers.callback),
             session.declare_queryable(keys.stop, guarded_queryable(self.handle_stop, "executor")),
         ]
 
@@ -261,6 +266,7 @@ class ExecutorNode(Node):
             self.monitor.close(timeout_s=self.cfg.executor.replan_timeout_s + 1.0)
         for q in self._queryables:
             q.undeclare()
+        self._workers.close()
         if self._map_sub is not None:
             self._map_sub.undeclare()
         self._sub.undeclare()

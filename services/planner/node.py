@@ -36,6 +36,7 @@ from robonav.services.common import (
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
 from robonav.services.planner.scene import PlanningScene
+from robonav.services.workers import RequestWorkers
 
 log = logging.getLogger("robonav.planner")
 
@@ -67,10 +68,12 @@ class PlannerNode(Node):
             session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "planner")),
             declare_latched_subscriber(session, keys.occupancy, guarded_subscriber(self.on_occupancy, "planner")),
         ]
+        # Plans run on worker threads: a long one must not hold Zenoh's callback thread.
+        self._workers = RequestWorkers("planner", self.handle_plan, workers=1,
+                                       queue_size=cfg.limits.max_queued_requests)
         # complete: any one planner can answer a plan request, so a best-matching query reaches
         # exactly one of several replicas (a client races them all with target ALL).
-        self._queryable = session.declare_queryable(keys.plan, guarded_queryable(self.handle_plan, "planner"),
-                                                    complete=True)
+        self._queryable = session.declare_queryable(keys.plan, self._workers.callback, complete=True)
         self.scene = PlanningScene(self.world, self._lock, current_q=self._start_from_joint_state)
         self._scene_queryable = session.declare_queryable(keys.scene, guarded_queryable(self.scene.handle_scene, "planner"))
 
@@ -119,7 +122,7 @@ class PlannerNode(Node):
                                 f"newest occupancy map is {age:.1f} s old (limit {self.cfg.planner.occupancy_max_age_s} s)",
                                 {"age_s": age})
 
-    def handle_plan(self, query: zenoh.Query) -> None:
+    def handle_plan(self, query: zenoh.Query, worker: int) -> None:
         request = decode_request(query, PlanRequest)
         names = self.robot.joint_names
         if request.start_positions is not None:
@@ -190,6 +193,7 @@ class PlannerNode(Node):
     def close(self) -> None:
         self._queryable.undeclare()
         self._scene_queryable.undeclare()
+        self._workers.close()
         for sub in self._subs:
             sub.undeclare()
 
