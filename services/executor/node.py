@@ -53,6 +53,7 @@ from robonav.services.config import RobonavConfig
 from robonav.services.executor.path_monitor import Execution, PathMonitor
 from robonav.services.executor.setpoint_stream import SetpointStream, StreamStats
 from robonav.services.keys import Keys
+from robonav.services.limits import check_execute_request
 from robonav.services.workers import RequestWorkers
 
 log = logging.getLogger("robonav.executor")
@@ -131,6 +132,7 @@ class ExecutorNode(Node):
 
     def handle_execute(self, query: zenoh.Query) -> None:
         request = decode_request(query, ExecuteRequest)
+        check_execute_request(request, self.cfg.limits)
         path = reorder_to_robot(request.path, request.joint_names, self.robot.joint_names, "path")
         for i, q in enumerate(path):
             violations = self.robot.check_joint_limits(q)

@@ -193,6 +193,18 @@ def test_bad_requests_get_structured_errors(executor: tuple[ExecutorNode, Robona
     assert isinstance(ok, ExecuteResponse)
 
 
+def test_requests_beyond_the_limits_are_refused(executor: tuple[ExecutorNode, RobonavClient, FakeRobot]) -> None:
+    node, client, robot = executor
+    node.cfg = dataclasses.replace(node.cfg, limits=dataclasses.replace(node.cfg.limits, max_waypoints=3,
+                                                                        max_replan_attempts=3))
+    reply = client.execute(_path(HOME, [0.05] * 7, [0.1] * 7, [0.15] * 7))
+    assert isinstance(reply, ErrorReply) and reply.code == "INVALID_REQUEST", reply
+    assert reply.details == {"key": "path", "value": 4, "limit": 3} and "limits.max_waypoints" in reply.message
+    reply = client.execute(_path(HOME, [0.05] * 7), replan=True, replan_attempts=4)
+    assert isinstance(reply, ErrorReply) and reply.details == {"key": "replan_attempts", "value": 4, "limit": 3}, reply
+    assert not robot.setpoints  # nothing moved
+
+
 def _map_with_cubes(centers_m: np.ndarray, stamp: float) -> bytes:
     tree = octomap.OcTree(0.02)
     for center in centers_m:
