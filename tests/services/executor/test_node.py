@@ -259,3 +259,58 @@ def test_a_replan_waits_for_maps_that_stopped_changing(executor: tuple[ExecutorN
         assert waiter.is_alive(), f"stopped waiting on the map stamped {stamp} s after the stop"
     waiter.join(timeout=5.0)
     assert not waiter.is_alive()
+
+
+@pytest.mark.parametrize("peer", ["silent", "late", "zenoh_error", "not_msgpack", "unknown_code"])
+def test_replanning_ends_in_path_blocked_whatever_the_planner_does(
+        executor: tuple[ExecutorNode, RobonavClient, FakeRobot], peer: str) -> None:
+    """A planner that never answers, answers after the timeout, or with something that is not a
+    plan: every replan attempt is used up and the execution ends in PATH_BLOCKED, within
+    replan_attempts x replan_timeout_s of the stop (it used to stay in `replanning`)."""
+    node, client, _ = executor
+    node.cfg = dataclasses.replace(node.cfg, executor=dataclasses.replace(
+        node.cfg.executor, replan_timeout_s=1.0, replan_delay_s=0.1, replan_settle_s=0.2))
+    kept: list[zenoh.Query] = []
+    timers: list[threading.Timer] = []
+
+    def answer(query: zenoh.Query) -> None:
+        kept.append(query)  # dropped at the end: a silent peer holds its queries
+        if peer == "late":
+            timers.append(threading.Timer(3.0, lambda: query.reply_err(msgpack.packb(
+                {"v": 1, "ok": False, "code": "NO_SOLUTION", "message": "too late", "details": {}}))))
+            timers[-1].start()
+        elif peer == "zenoh_error":
+            query.reply_err(b"Timeout")
+        elif peer == "not_msgpack":
+            query.reply(query.key_expr, b"\xc1 not a plan")
+        elif peer == "unknown_code":
+            query.reply_err(msgpack.packb({"v": 1, "ok": False, "code": "FROM_THE_FUTURE", "message": "?", "details": {}}))
+
+    planner = client.session.declare_queryable(client.keys.plan, answer, complete=True)
+    path = _path(HOME, [0.8, 0, 0, 0, 0, 0, 0])
+    hand = RobotModel.from_config(CONFIG.robot).link_poses(HOME + np.array([0.6, 0, 0, 0, 0, 0, 0]))["panda_hand"][:3, 3]
+    far = np.array([[-0.8, -0.8, 0.1]])
+    publisher = declare_latched_publisher(client.session, client.keys.occupancy)
+    publisher.put(_map_with_cubes(far, stamp=100.0))
+    assert client.wait_for(lambda: node.monitor.held_maps == 1, 5.0)
+    publisher.put(_map_with_cubes(np.vstack([far, hand]), stamp=101.0))  # planned on map 100: the hand's voxel is new
+    assert client.wait_for(lambda: node.monitor.held_maps == 2, 5.0)
+    reply = client.execute(path, trajectory_id="blocked", occupancy_stamp=100.0, replan=True, replan_attempts=2)
+    assert isinstance(reply, ExecuteResponse), reply
+    assert client.wait_for(lambda: client.status is not None and client.status.state == "replanning", 10.0)
+    replanning_at = time.monotonic()
+    assert client.wait_for(lambda: client.status.state == "error", 10.0), client.status  # type: ignore[union-attr]
+    took_s = time.monotonic() - replanning_at
+    status = client.status
+    assert status.trajectory_id == "blocked" and status.error_code == "PATH_BLOCKED", status
+    expected = {"silent": "'Timeout'", "late": "'Timeout'", "zenoh_error": "'Timeout'",
+                "not_msgpack": "not a PlanResponse", "unknown_code": "INTERNAL_ERROR: FROM_THE_FUTURE"}[peer]
+    assert expected in status.error_message, status.error_message
+    assert len(kept) == 2 and took_s < 2 * 1.0 + 1.0, (len(kept), took_s)  # two attempts, within their budget
+    for timer in timers:
+        timer.cancel()
+        timer.join()
+    for query in kept:
+        query.drop()
+    planner.undeclare()
+    publisher.undeclare()
