@@ -11,7 +11,6 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-import zenoh
 
 from robonav.pipeline.wire.messages import ErrorReply, PlanRequest, PlanResponse, SceneObjectSpec, SceneRequest, SceneResponse
 from robonav.services.client import RobonavClient
