@@ -43,6 +43,19 @@ def write_config(directory: Path, name: str, **sections: dict) -> Path:
     return path
 
 
+def wait_until_served(session: zenoh.Session, key: str, timeout_s: float = 10.0) -> None:
+    """Wait until `session` sees a queryable on `key`: a query sent right after another session
+    declared one may reach the router before the declaration does, and get no reply at all."""
+    querier = session.declare_querier(key)
+    deadline = time.monotonic() + timeout_s
+    try:
+        while not querier.matching_status.matching:
+            assert time.monotonic() < deadline, f"no queryable on {key} after {timeout_s} s"
+            time.sleep(0.02)
+    finally:
+        querier.undeclare()
+
+
 @pytest.fixture
 def bus() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
     """A router on a free port and two client sessions through it: (service side, client side)."""

@@ -13,18 +13,23 @@ import zenoh
 from robonav.pipeline.wire.messages import ErrorReply, StopRequest, StopResponse
 from robonav.services.client import QueryFailed, RobonavClient, error_reply, query_one
 
+from .conftest import wait_until_served
+
 KEY = "robonav/arm0/executor/stop"
 
 
-def _serve(session: zenoh.Session, answer) -> tuple[zenoh.Queryable, list[zenoh.Query]]:  # noqa: ANN001
-    """A queryable on KEY calling `answer(query)`; queries it keeps (silent peers) are returned."""
+def _serve(bus: tuple[zenoh.Session, zenoh.Session], answer) -> tuple[zenoh.Queryable, list[zenoh.Query]]:  # noqa: ANN001
+    """A queryable on KEY calling `answer(query)`, once the client side sees it; queries it keeps
+    (silent peers) are returned."""
     kept: list[zenoh.Query] = []
 
     def callback(query: zenoh.Query) -> None:
         kept.append(query)  # a silent peer never lets go of it; the test drops it at the end
         answer(query)
 
-    return session.declare_queryable(KEY, callback, complete=True), kept
+    queryable = bus[0].declare_queryable(KEY, callback, complete=True)
+    wait_until_served(bus[1], KEY)
+    return queryable, kept
 
 
 def _ask(client: zenoh.Session, timeout_s: float) -> StopResponse | ErrorReply:
@@ -39,8 +44,8 @@ def _error_map(code: str, message: str = "why", **extra: object) -> bytes:
 def test_a_reply_arrives_although_the_peer_never_ends_the_query(bus: tuple[zenoh.Session, zenoh.Session]) -> None:
     # A peer that replies but holds on to the query (as a reference cycle once did): Zenoh's
     # default consolidation would hold the reply until the timeout and deliver "Timeout" first.
-    service, client = bus
-    queryable, kept = _serve(service, lambda q: q.reply(q.key_expr, StopResponse(state="idle").to_wire()))
+    _, client = bus
+    queryable, kept = _serve(bus, lambda q: q.reply(q.key_expr, StopResponse(state="idle").to_wire()))
     started = time.monotonic()
     reply = _ask(client, timeout_s=10.0)
     assert isinstance(reply, StopResponse) and reply.state == "idle"
@@ -51,7 +56,7 @@ def test_a_reply_arrives_although_the_peer_never_ends_the_query(bus: tuple[zenoh
 
 
 def test_a_late_reply_within_the_timeout_is_taken(bus: tuple[zenoh.Session, zenoh.Session]) -> None:
-    service, client = bus
+    _, client = bus
 
     def later(query: zenoh.Query) -> None:
         def run() -> None:
@@ -60,7 +65,7 @@ def test_a_late_reply_within_the_timeout_is_taken(bus: tuple[zenoh.Session, zeno
             query.drop()
         threading.Thread(target=run, daemon=True).start()
 
-    queryable, _ = _serve(service, later)
+    queryable, _ = _serve(bus, later)
     reply = _ask(client, timeout_s=10.0)
     assert isinstance(reply, StopResponse) and reply.state == "stopped"
     queryable.undeclare()
@@ -69,8 +74,8 @@ def test_a_late_reply_within_the_timeout_is_taken(bus: tuple[zenoh.Session, zeno
 @pytest.mark.parametrize("timeout_s", [0.5])
 def test_a_silent_or_too_slow_peer_is_query_failed_naming_key_timeout_and_zenohs_text(
         bus: tuple[zenoh.Session, zenoh.Session], timeout_s: float) -> None:
-    service, client = bus
-    queryable, kept = _serve(service, lambda q: None)
+    _, client = bus
+    queryable, kept = _serve(bus, lambda q: None)
     with pytest.raises(QueryFailed) as failed:
         _ask(client, timeout_s=timeout_s)
     text = str(failed.value)
@@ -91,8 +96,8 @@ def test_nobody_serving_the_key_is_query_failed(bus: tuple[zenoh.Session, zenoh.
                                      msgpack.packb({"ok": False, "message": "no code"})])
 def test_an_error_reply_that_is_not_an_error_map_is_query_failed(
         bus: tuple[zenoh.Session, zenoh.Session], payload: bytes) -> None:
-    service, client = bus
-    queryable, _ = _serve(service, lambda q: q.reply_err(payload))
+    _, client = bus
+    queryable, _ = _serve(bus, lambda q: q.reply_err(payload))
     with pytest.raises(QueryFailed, match="its own error") as failed:
         _ask(client, timeout_s=5.0)
     assert KEY in str(failed.value)
@@ -100,8 +105,8 @@ def test_an_error_reply_that_is_not_an_error_map_is_query_failed(
 
 
 def test_an_ordinary_reply_that_is_not_the_message_is_query_failed(bus: tuple[zenoh.Session, zenoh.Session]) -> None:
-    service, client = bus
-    queryable, _ = _serve(service, lambda q: q.reply(q.key_expr, b"\x92\x01"))
+    _, client = bus
+    queryable, _ = _serve(bus, lambda q: q.reply(q.key_expr, b"\x92\x01"))
     with pytest.raises(QueryFailed, match="not a StopResponse"):
         _ask(client, timeout_s=5.0)
     queryable.undeclare()
@@ -109,10 +114,10 @@ def test_an_ordinary_reply_that_is_not_the_message_is_query_failed(bus: tuple[ze
 
 def test_an_error_map_is_an_error_reply_as_an_error_or_as_an_ordinary_reply(
         bus: tuple[zenoh.Session, zenoh.Session]) -> None:
-    service, client = bus
+    _, client = bus
     for send in (lambda q: q.reply_err(_error_map("NO_JOINT_STATE")),
                  lambda q: q.reply(q.key_expr, _error_map("NO_JOINT_STATE"))):
-        queryable, _ = _serve(service, send)
+        queryable, _ = _serve(bus, send)
         reply = _ask(client, timeout_s=5.0)
         assert isinstance(reply, ErrorReply) and reply.code == "NO_JOINT_STATE" and reply.details == {"key": "x"}
         queryable.undeclare()
@@ -120,8 +125,8 @@ def test_an_error_map_is_an_error_reply_as_an_error_or_as_an_ordinary_reply(
 
 def test_an_unknown_code_is_internal_error_keeping_the_code(bus: tuple[zenoh.Session, zenoh.Session]) -> None:
     # A peer of a newer version: an unknown code, and a key this version does not know.
-    service, client = bus
-    queryable, _ = _serve(service, lambda q: q.reply_err(_error_map("ARM_ON_FIRE", "too hot", hint="later")))
+    _, client = bus
+    queryable, _ = _serve(bus, lambda q: q.reply_err(_error_map("ARM_ON_FIRE", "too hot", hint="later")))
     reply = _ask(client, timeout_s=5.0)
     assert isinstance(reply, ErrorReply) and reply.code == "INTERNAL_ERROR"
     assert reply.message == "ARM_ON_FIRE: too hot" and reply.details == {"key": "x", "code": "ARM_ON_FIRE"}
@@ -135,8 +140,8 @@ def test_error_reply_reads_only_error_maps() -> None:
 
 
 def test_a_race_with_only_unusable_replies_is_query_failed(bus: tuple[zenoh.Session, zenoh.Session]) -> None:
-    service, client = bus
-    queryable, _ = _serve(service, lambda q: q.reply_err(b"Timeout"))
+    _, client = bus
+    queryable, _ = _serve(bus, lambda q: q.reply_err(b"Timeout"))
     robonav = RobonavClient(client)
     with pytest.raises(QueryFailed, match="'Timeout'"):
         robonav.race(KEY, StopRequest(), StopResponse, 5.0)

@@ -18,6 +18,8 @@ from robonav.services.client import query_one, reply_message
 from robonav.services.common import guarded_queryable
 from robonav.services.workers import RequestWorkers
 
+from .conftest import wait_until_served
+
 KEY = "robonav/arm0/executor/stop"
 OTHER = "robonav/arm0/executor/execute"
 
@@ -48,6 +50,7 @@ def test_a_query_ends_when_its_handler_returns_even_if_a_cycle_still_holds_it(
     gc.disable()
     try:
         queryable = service.declare_queryable(KEY, guarded_queryable(handler, "test"))
+        wait_until_served(client, KEY)
         replies = list(client.get(KEY, payload=StopRequest().to_wire(), timeout=5.0))  # default consolidation
         assert [r.ok is not None for r in replies] == [True], [r.err.payload.to_bytes() for r in replies if r.err]
     finally:
@@ -69,6 +72,8 @@ def test_long_work_runs_off_the_callback_thread_and_a_full_queue_answers_busy(
     workers = RequestWorkers("slowpoke", slow, workers=1, queue_size=1)
     queryables = [service.declare_queryable(KEY, workers.callback),
                   service.declare_queryable(OTHER, guarded_queryable(_reply, "quick"))]
+    wait_until_served(client, KEY)
+    wait_until_served(client, OTHER)
     results: list[StopResponse | ErrorReply] = []
     askers = [threading.Thread(target=lambda: results.append(_ask(client))) for _ in range(2)]
     for asker in askers:  # one runs, one waits in the queue
@@ -100,6 +105,7 @@ def test_worker_exceptions_become_structured_errors(bus: tuple[zenoh.Session, ze
 
     workers = RequestWorkers("failing", failing, workers=2, queue_size=4)
     queryable = service.declare_queryable(KEY, workers.callback)
+    wait_until_served(client, KEY)
     invalid = _ask(client)
     assert isinstance(invalid, ErrorReply) and invalid.code == "INVALID_REQUEST" and invalid.details == {"key": "emergency"}
     started = time.monotonic()
@@ -115,6 +121,7 @@ def test_closing_answers_the_waiting_queries_busy(bus: tuple[zenoh.Session, zeno
     release = threading.Event()
     workers = RequestWorkers("closing", lambda q, w: (release.wait(20.0), _reply(q)), workers=1, queue_size=4)
     queryable = service.declare_queryable(KEY, workers.callback)
+    wait_until_served(client, KEY)
     results: list[object] = []
     askers = [threading.Thread(target=lambda: results.append(_ask(client))) for _ in range(3)]
     for asker in askers:

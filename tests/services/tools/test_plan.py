@@ -24,7 +24,7 @@ from robonav.services.keys import Keys
 from robonav.services.tools import plan as plan_cli
 
 from ...conftest import REPO_ROOT
-from ..conftest import free_port, write_config
+from ..conftest import free_port, wait_until_served, write_config
 
 GOAL = ["0.1", "-0.5", "0.0", "-2.0", "0.0", "1.6", "0.8"]
 ANSWERS = {
@@ -37,21 +37,24 @@ ANSWERS = {
 
 
 @pytest.fixture
-def cell(tmp_path: Path) -> Iterator[tuple[Path, zenoh.Session]]:
+def cell(tmp_path: Path) -> Iterator[tuple[Path, zenoh.Session, zenoh.Session]]:
+    """A config naming a router, a session for the stand-in planner, and one that sees what a client sees."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
     service = open_session(ZenohConfig(connect=(endpoint,)))
-    yield write_config(tmp_path, "plan.yaml", zenoh={"connect": [endpoint]}), service
-    service.close()
-    router.close()
+    observer = open_session(ZenohConfig(connect=(endpoint,)))
+    yield write_config(tmp_path, "plan.yaml", zenoh={"connect": [endpoint]}), service, observer
+    for s in (observer, service, router):
+        s.close()
 
 
 @pytest.mark.parametrize(("peer", "code", "stage"), [("silent", 3, "no_reply"), ("zenoh_error", 3, "no_reply"),
                                                      ("garbage", 3, "no_reply"), ("busy", 1, "plan"),
                                                      ("unknown_code", 1, "plan"), (None, 3, "no_reply")])
-def test_exit_codes_hold_for_every_kind_of_peer(cell: tuple[Path, zenoh.Session], capsys: pytest.CaptureFixture[str],
-                                                peer: str | None, code: int, stage: str) -> None:
-    config, service = cell
+def test_exit_codes_hold_for_every_kind_of_peer(cell: tuple[Path, zenoh.Session, zenoh.Session],
+                                                capsys: pytest.CaptureFixture[str], peer: str | None, code: int,
+                                                stage: str) -> None:
+    config, service, observer = cell
     kept: list[zenoh.Query] = []
 
     def answer(query: zenoh.Query) -> None:
@@ -59,6 +62,8 @@ def test_exit_codes_hold_for_every_kind_of_peer(cell: tuple[Path, zenoh.Session]
         ANSWERS[peer](query)
 
     queryable = service.declare_queryable(Keys("arm0").plan, answer, complete=True) if peer else None
+    if queryable is not None:
+        wait_until_served(observer, Keys("arm0").plan)
     assert plan_cli.main(["--goal", *GOAL, "--config", str(config), "--timeout", "1"]) == code
     record = json.loads(capsys.readouterr().out)
     assert record["ok"] is False and record["stage"] == stage, record
@@ -72,8 +77,8 @@ def test_exit_codes_hold_for_every_kind_of_peer(cell: tuple[Path, zenoh.Session]
         queryable.undeclare()
 
 
-def test_a_request_the_protocol_refuses_exits_2(cell: tuple[Path, zenoh.Session]) -> None:
-    config, _ = cell
+def test_a_request_the_protocol_refuses_exits_2(cell: tuple[Path, zenoh.Session, zenoh.Session]) -> None:
+    config, _, _ = cell
     too_short = ["--start", *GOAL[:6]]  # joint vectors of different lengths: refused before anything is sent
     assert plan_cli.main(["--goal", *GOAL, *too_short, "--config", str(config), "--timeout", "1"]) == plan_cli.EXIT_CONFIG
 
@@ -81,12 +86,13 @@ def test_a_request_the_protocol_refuses_exits_2(cell: tuple[Path, zenoh.Session]
 @pytest.mark.parametrize(("peer", "code", "said"), [("silent", 2, "'Timeout'"), ("zenoh_error", 2, "'Timeout'"),
                                                     ("garbage", 2, "no reply of the protocol"),
                                                     ("unknown_code", 1, "INTERNAL_ERROR: NEWER: ?")])
-def test_the_example_client_has_its_own_copy_of_the_rule(cell: tuple[Path, zenoh.Session], peer: str, code: int,
-                                                         said: str) -> None:
-    config, service = cell
+def test_the_example_client_has_its_own_copy_of_the_rule(cell: tuple[Path, zenoh.Session, zenoh.Session], peer: str,
+                                                         code: int, said: str) -> None:
+    config, service, observer = cell
     router = yaml.safe_load(config.read_text(encoding="utf-8"))["zenoh"]["connect"][0]
     kept: list[zenoh.Query] = []
     queryable = service.declare_queryable(Keys("arm0").plan, lambda q: (kept.append(q), ANSWERS[peer](q)), complete=True)
+    wait_until_served(observer, Keys("arm0").plan)
     run = subprocess.run([sys.executable, str(REPO_ROOT / "examples" / "plan_client.py"), "--router", router,
                           "--goal", *GOAL, "--timeout", "1"], capture_output=True, text=True, timeout=60)
     assert run.returncode == code and said in run.stderr, (run.returncode, run.stderr)
