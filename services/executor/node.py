@@ -102,6 +102,10 @@ class ExecutorNode(Node):
         self._generation = 0
         self._blocked_after_frame_s: float | None = None
         self._blocked_stamp: float | None = None
+        # Before the service is alive: the first execute costs what later ones do (the path
+        # monitor warms its guard's compiled kernels too).
+        home = self.robot.home_position_rad
+        self._time_parameterize(np.vstack([home, home + 0.05, home + np.linspace(0.0, 0.1, len(home))]), None, None)
         self.monitor = PathMonitor(self) if cfg.executor.monitor_path else None
         self._map_sub = (declare_latched_subscriber(session, keys.occupancy, self.monitor.on_occupancy)
                          if self.monitor is not None else None)

@@ -4,7 +4,8 @@ Keeps the latest occupancy map and the latest joint state (the default start), a
 request to a worker thread (`planner.workers`), which plans with `MotionPlanner` in a world of
 its own (`plan_worker.py`): a long request holds one worker, and the others go on answering.
 Scene changes (`planner/scene`) apply to the scene at once; each worker copies them, and the
-newest map, into its world before its next plan.
+newest map, into its world before its next plan. Before the service declares itself alive,
+every worker has planned once (`warm_up.py`), so the first request costs what any other does.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from robonav.services.keys import Keys
 from robonav.services.limits import check_plan_request
 from robonav.services.planner.plan_worker import PlanWorker
 from robonav.services.planner.scene import PlanningScene
+from robonav.services.planner.warm_up import warm_up_worker
 from robonav.services.workers import RequestWorkers
 
 log = logging.getLogger("robonav.planner")
@@ -71,6 +73,8 @@ class PlannerNode(Node):
                                    threading.Lock(), current_q=self._start_from_joint_state, limits=cfg.limits)
         self.plan_workers = [PlanWorker.create(self.robot, cfg.robot.padding_m, cfg.planner)
                              for _ in range(cfg.planner.workers)]
+        for worker in self.plan_workers:
+            warm_up_worker(worker, seed=cfg.planner.seed)
         keys = Keys(cfg.cell)
         self._subs = [
             session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "planner")),
