@@ -7,8 +7,9 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -54,6 +55,33 @@ def wait_until_served(session: zenoh.Session, key: str, timeout_s: float = 10.0)
             time.sleep(0.02)
     finally:
         querier.undeclare()
+
+
+class StandInPeer:
+    """A bare queryable on `key` standing in for a service: `answer(query)` runs for each query,
+    which is kept (a silent or slow peer holds its queries) and dropped by `close`, never while
+    its callback still runs (the callback holds it: dropping it then raises "Already borrowed").
+    With `observer`, waits until that session sees the queryable."""
+
+    def __init__(self, session: zenoh.Session, key: str, answer: Callable[[zenoh.Query], object], *,
+                 observer: zenoh.Session | None = None) -> None:
+        self.queries: list[zenoh.Query] = []
+        self._lock = threading.Lock()
+
+        def callback(query: zenoh.Query) -> None:
+            with self._lock:
+                self.queries.append(query)
+                answer(query)
+
+        self._queryable = session.declare_queryable(key, callback, complete=True)
+        if observer is not None:
+            wait_until_served(observer, key)
+
+    def close(self) -> None:
+        with self._lock:
+            for query in self.queries:
+                query.drop()
+            self._queryable.undeclare()
 
 
 @pytest.fixture

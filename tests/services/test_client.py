@@ -13,23 +13,14 @@ import zenoh
 from robonav.pipeline.wire.messages import ErrorReply, StopRequest, StopResponse
 from robonav.services.client import QueryFailed, RobonavClient, error_reply, query_one
 
-from .conftest import wait_until_served
+from .conftest import StandInPeer
 
 KEY = "robonav/arm0/executor/stop"
 
 
-def _serve(bus: tuple[zenoh.Session, zenoh.Session], answer) -> tuple[zenoh.Queryable, list[zenoh.Query]]:  # noqa: ANN001
-    """A queryable on KEY calling `answer(query)`, once the client side sees it; queries it keeps
-    (silent peers) are returned."""
-    kept: list[zenoh.Query] = []
-
-    def callback(query: zenoh.Query) -> None:
-        kept.append(query)  # a silent peer never lets go of it; the test drops it at the end
-        answer(query)
-
-    queryable = bus[0].declare_queryable(KEY, callback, complete=True)
-    wait_until_served(bus[1], KEY)
-    return queryable, kept
+def _serve(bus: tuple[zenoh.Session, zenoh.Session], answer) -> StandInPeer:  # noqa: ANN001
+    """A stand-in service on KEY calling `answer(query)`, once the client side sees it."""
+    return StandInPeer(bus[0], KEY, answer, observer=bus[1])
 
 
 def _ask(client: zenoh.Session, timeout_s: float) -> StopResponse | ErrorReply:
@@ -45,45 +36,45 @@ def test_a_reply_arrives_although_the_peer_never_ends_the_query(bus: tuple[zenoh
     # A peer that replies but holds on to the query (as a reference cycle once did): Zenoh's
     # default consolidation would hold the reply until the timeout and deliver "Timeout" first.
     _, client = bus
-    queryable, kept = _serve(bus, lambda q: q.reply(q.key_expr, StopResponse(state="idle").to_wire()))
+    peer = _serve(bus, lambda q: q.reply(q.key_expr, StopResponse(state="idle").to_wire()))
     started = time.monotonic()
     reply = _ask(client, timeout_s=10.0)
     assert isinstance(reply, StopResponse) and reply.state == "idle"
     assert time.monotonic() - started < 9.0, "the reply waited for the query to end"
-    for q in kept:
-        q.drop()
-    queryable.undeclare()
+    peer.close()
 
 
 def test_a_late_reply_within_the_timeout_is_taken(bus: tuple[zenoh.Session, zenoh.Session]) -> None:
     _, client = bus
 
+    repliers: list[threading.Thread] = []
+
     def later(query: zenoh.Query) -> None:
         def run() -> None:
             time.sleep(1.0)
             query.reply(query.key_expr, StopResponse(state="stopped").to_wire())
-            query.drop()
-        threading.Thread(target=run, daemon=True).start()
+        repliers.append(threading.Thread(target=run, daemon=True))
+        repliers[-1].start()
 
-    queryable, _ = _serve(bus, later)
+    peer = _serve(bus, later)
     reply = _ask(client, timeout_s=10.0)
     assert isinstance(reply, StopResponse) and reply.state == "stopped"
-    queryable.undeclare()
+    for replier in repliers:
+        replier.join(5.0)
+    peer.close()
 
 
 @pytest.mark.parametrize("timeout_s", [0.5])
 def test_a_silent_or_too_slow_peer_is_query_failed_naming_key_timeout_and_zenohs_text(
         bus: tuple[zenoh.Session, zenoh.Session], timeout_s: float) -> None:
     _, client = bus
-    queryable, kept = _serve(bus, lambda q: None)
+    peer = _serve(bus, lambda q: None)
     with pytest.raises(QueryFailed) as failed:
         _ask(client, timeout_s=timeout_s)
     text = str(failed.value)
     assert KEY in text and f"{timeout_s:g} s" in text and "'Timeout'" in text, text
     assert failed.value.key == KEY and failed.value.timeout_s == timeout_s
-    for q in kept:
-        q.drop()
-    queryable.undeclare()
+    peer.close()
 
 
 def test_nobody_serving_the_key_is_query_failed(bus: tuple[zenoh.Session, zenoh.Session]) -> None:
@@ -97,19 +88,19 @@ def test_nobody_serving_the_key_is_query_failed(bus: tuple[zenoh.Session, zenoh.
 def test_an_error_reply_that_is_not_an_error_map_is_query_failed(
         bus: tuple[zenoh.Session, zenoh.Session], payload: bytes) -> None:
     _, client = bus
-    queryable, _ = _serve(bus, lambda q: q.reply_err(payload))
+    peer = _serve(bus, lambda q: q.reply_err(payload))
     with pytest.raises(QueryFailed, match="its own error") as failed:
         _ask(client, timeout_s=5.0)
     assert KEY in str(failed.value)
-    queryable.undeclare()
+    peer.close()
 
 
 def test_an_ordinary_reply_that_is_not_the_message_is_query_failed(bus: tuple[zenoh.Session, zenoh.Session]) -> None:
     _, client = bus
-    queryable, _ = _serve(bus, lambda q: q.reply(q.key_expr, b"\x92\x01"))
+    peer = _serve(bus, lambda q: q.reply(q.key_expr, b"\x92\x01"))
     with pytest.raises(QueryFailed, match="not a StopResponse"):
         _ask(client, timeout_s=5.0)
-    queryable.undeclare()
+    peer.close()
 
 
 def test_an_error_map_is_an_error_reply_as_an_error_or_as_an_ordinary_reply(
@@ -117,20 +108,20 @@ def test_an_error_map_is_an_error_reply_as_an_error_or_as_an_ordinary_reply(
     _, client = bus
     for send in (lambda q: q.reply_err(_error_map("NO_JOINT_STATE")),
                  lambda q: q.reply(q.key_expr, _error_map("NO_JOINT_STATE"))):
-        queryable, _ = _serve(bus, send)
+        peer = _serve(bus, send)
         reply = _ask(client, timeout_s=5.0)
         assert isinstance(reply, ErrorReply) and reply.code == "NO_JOINT_STATE" and reply.details == {"key": "x"}
-        queryable.undeclare()
+        peer.close()
 
 
 def test_an_unknown_code_is_internal_error_keeping_the_code(bus: tuple[zenoh.Session, zenoh.Session]) -> None:
     # A peer of a newer version: an unknown code, and a key this version does not know.
     _, client = bus
-    queryable, _ = _serve(bus, lambda q: q.reply_err(_error_map("ARM_ON_FIRE", "too hot", hint="later")))
+    peer = _serve(bus, lambda q: q.reply_err(_error_map("ARM_ON_FIRE", "too hot", hint="later")))
     reply = _ask(client, timeout_s=5.0)
     assert isinstance(reply, ErrorReply) and reply.code == "INTERNAL_ERROR"
     assert reply.message == "ARM_ON_FIRE: too hot" and reply.details == {"key": "x", "code": "ARM_ON_FIRE"}
-    queryable.undeclare()
+    peer.close()
 
 
 def test_error_reply_reads_only_error_maps() -> None:
@@ -141,9 +132,9 @@ def test_error_reply_reads_only_error_maps() -> None:
 
 def test_a_race_with_only_unusable_replies_is_query_failed(bus: tuple[zenoh.Session, zenoh.Session]) -> None:
     _, client = bus
-    queryable, _ = _serve(bus, lambda q: q.reply_err(b"Timeout"))
+    peer = _serve(bus, lambda q: q.reply_err(b"Timeout"))
     robonav = RobonavClient(client)
     with pytest.raises(QueryFailed, match="'Timeout'"):
         robonav.race(KEY, StopRequest(), StopResponse, 5.0)
     robonav.close()
-    queryable.undeclare()
+    peer.close()

@@ -24,7 +24,7 @@ from robonav.services.keys import Keys
 from robonav.services.tools import plan as plan_cli
 
 from ...conftest import REPO_ROOT
-from ..conftest import free_port, wait_until_served, write_config
+from ..conftest import StandInPeer, free_port, write_config
 
 GOAL = ["0.1", "-0.5", "0.0", "-2.0", "0.0", "1.6", "0.8"]
 ANSWERS = {
@@ -48,33 +48,23 @@ def cell(tmp_path: Path) -> Iterator[tuple[Path, zenoh.Session, zenoh.Session]]:
         s.close()
 
 
-@pytest.mark.parametrize(("peer", "code", "stage"), [("silent", 3, "no_reply"), ("zenoh_error", 3, "no_reply"),
+@pytest.mark.parametrize(("peer_kind", "code", "stage"), [("silent", 3, "no_reply"), ("zenoh_error", 3, "no_reply"),
                                                      ("garbage", 3, "no_reply"), ("busy", 1, "plan"),
                                                      ("unknown_code", 1, "plan"), (None, 3, "no_reply")])
 def test_exit_codes_hold_for_every_kind_of_peer(cell: tuple[Path, zenoh.Session, zenoh.Session],
-                                                capsys: pytest.CaptureFixture[str], peer: str | None, code: int,
+                                                capsys: pytest.CaptureFixture[str], peer_kind: str | None, code: int,
                                                 stage: str) -> None:
     config, service, observer = cell
-    kept: list[zenoh.Query] = []
-
-    def answer(query: zenoh.Query) -> None:
-        kept.append(query)
-        ANSWERS[peer](query)
-
-    queryable = service.declare_queryable(Keys("arm0").plan, answer, complete=True) if peer else None
-    if queryable is not None:
-        wait_until_served(observer, Keys("arm0").plan)
+    peer = StandInPeer(service, Keys("arm0").plan, ANSWERS[peer_kind], observer=observer) if peer_kind else None
     assert plan_cli.main(["--goal", *GOAL, "--config", str(config), "--timeout", "1"]) == code
     record = json.loads(capsys.readouterr().out)
     assert record["ok"] is False and record["stage"] == stage, record
     if stage == "no_reply":
         assert record["key"] == Keys("arm0").plan and record["timeout_s"] == 1.0, record
     else:
-        assert record["code"] == ("BUSY" if peer == "busy" else "INTERNAL_ERROR"), record
-    for query in kept:
-        query.drop()
-    if queryable is not None:
-        queryable.undeclare()
+        assert record["code"] == ("BUSY" if peer_kind == "busy" else "INTERNAL_ERROR"), record
+    if peer is not None:
+        peer.close()
 
 
 def test_a_request_the_protocol_refuses_exits_2(cell: tuple[Path, zenoh.Session, zenoh.Session]) -> None:
@@ -90,15 +80,11 @@ def test_the_example_client_has_its_own_copy_of_the_rule(cell: tuple[Path, zenoh
                                                          code: int, said: str) -> None:
     config, service, observer = cell
     router = yaml.safe_load(config.read_text(encoding="utf-8"))["zenoh"]["connect"][0]
-    kept: list[zenoh.Query] = []
-    queryable = service.declare_queryable(Keys("arm0").plan, lambda q: (kept.append(q), ANSWERS[peer](q)), complete=True)
-    wait_until_served(observer, Keys("arm0").plan)
+    stand_in = StandInPeer(service, Keys("arm0").plan, ANSWERS[peer], observer=observer)
     run = subprocess.run([sys.executable, str(REPO_ROOT / "examples" / "plan_client.py"), "--router", router,
                           "--goal", *GOAL, "--timeout", "1"], capture_output=True, text=True, timeout=60)
     assert run.returncode == code and said in run.stderr, (run.returncode, run.stderr)
-    for query in kept:
-        query.drop()
-    queryable.undeclare()
+    stand_in.close()
 
 
 def test_the_example_client_knows_the_documented_codes() -> None:
