@@ -10,7 +10,7 @@ DEB_PACKAGES := libusb-1.0-0 libgomp1
 # The browser test of `robonav view` drives Debian's chromium (Playwright cannot download its own offline).
 test: DEB_PACKAGES += chromium
 
-.PHONY: demo test setup system-deps clean
+.PHONY: demo test setup system-deps precompile clean
 
 demo: setup
 	mkdir -p out
@@ -20,7 +20,12 @@ test: setup
 	$(VENV)/bin/ruff check pipeline services calibration tests examples
 	$(PY) -m pytest
 
-setup: system-deps $(STAMP)
+setup: system-deps $(STAMP) precompile
+
+# Compiled kernels go to the compile cache (NUMBA_CACHE_DIR, default ~/.cache/robonav/numba),
+# never into the source tree. Filled here, no service compiles at start-up; seconds when it is full.
+precompile: $(STAMP)
+	$(VENV)/bin/robonav precompile
 
 system-deps:
 	@missing=""; \

@@ -6,6 +6,7 @@ import argparse
 import importlib
 import os
 import sys
+from pathlib import Path
 
 SERVICE_MODULES = {
     "sim": "robonav.services.sim.node",
@@ -32,13 +33,44 @@ COMMANDS: dict[str, tuple[str, str]] = {
                                              "`robonav calibrate solve DIR`"),
     "campaign": ("robonav.services.campaign.run", "safety campaign on random scenes: `robonav campaign --scenes N --seed S "
                                               "[--json FILE]`"),
+    "precompile": ("robonav.services.tools.precompile", "compile every numba kernel into the compile cache "
+                                                     "(`make setup` and the Docker build run it)"),
 }
+
+NUMBA_CACHE_ENV = "NUMBA_CACHE_DIR"
+"""Numba's own variable for where compiled kernels are cached; set, it overrides our default."""
+
+
+def default_numba_cache_dir() -> Path:
+    """The compile cache when NUMBA_CACHE_DIR is unset: `$XDG_CACHE_HOME/robonav/numba`, else
+    `~/.cache/robonav/numba` (the XDG base directory rules)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "robonav" / "numba"
+
+
+def use_numba_cache_dir() -> Path:
+    """Point numba's on-disk cache at NUMBA_CACHE_DIR, or at `default_numba_cache_dir()`; returns it.
+
+    Numba reads the variable once, when it is first imported, and by default caches next to
+    each source file: inside the installed package, which may be read-only (a system install,
+    a container) and, in a checkout, mixes build products into the tree. So every process that
+    compiles calls this before anything imports numba: the `robonav` entry point, and the tests.
+
+    Raises:
+        RuntimeError: numba was imported before (the setting would not take effect).
+    """
+    if "numba" in sys.modules and not os.environ.get(NUMBA_CACHE_ENV):
+        raise RuntimeError("numba was imported before its cache directory was set; call use_numba_cache_dir() first")
+    path = Path(os.environ.get(NUMBA_CACHE_ENV) or default_numba_cache_dir()).expanduser()
+    os.environ[NUMBA_CACHE_ENV] = str(path)
+    return path
 
 
 def main(argv: list[str] | None = None) -> int:
     # Before numpy loads: on a 2-core machine shared by four services, OpenBLAS threads fight
     # each other (a 3 ms matrix product took 80 ms), so each process uses one BLAS thread.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    use_numba_cache_dir()  # before any command imports numba; services started by `up` inherit it
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="robonav", description="Perception-to-plan pipeline for robot arms over Zenoh.")
     sub = parser.add_subparsers(dest="command", required=True)

@@ -8,13 +8,13 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Sequence
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 import zenoh
 
-from robonav.pipeline.wire.codec import Message, ProtocolError
-from robonav.pipeline.wire.codes import ExecutionState
+from robonav.pipeline.wire.codec import Message, ProtocolError, unpack
+from robonav.pipeline.wire.codes import ErrorCode, ExecutionState
 from robonav.pipeline.wire.messages import (
     ContactsRequest,
     ContactsResponse,
@@ -30,7 +30,6 @@ from robonav.pipeline.wire.messages import (
     SceneResponse,
     StopRequest,
     StopResponse,
-    decode_reply,
 )
 from robonav.services.common import declare_latched_subscriber
 from robonav.services.keys import Keys
@@ -43,14 +42,82 @@ def _replier(reply: zenoh.Reply) -> str | None:
 
 
 class QueryFailed(RuntimeError):
-    """No reply arrived (nobody answered the key, or the timeout passed)."""
+    """A query got no reply of the protocol: nobody answered before the timeout, or Zenoh ended
+    it with an error of its own (its text, e.g. "Timeout"), or the reply was not a message.
+
+    Attributes: key, timeout_s, reason (what happened, with Zenoh's text when it sent one).
+    """
+
+    def __init__(self, key: str, timeout_s: float, reason: str) -> None:
+        super().__init__(f"{key}: {reason} (query timeout {timeout_s:g} s)")
+        self.key = key
+        self.timeout_s = timeout_s
+        self.reason = reason
+
+
+KNOWN_CODES = frozenset(code.value for code in ErrorCode)
+
+
+def error_reply(payload: bytes) -> ErrorReply | None:
+    """The payload as a structured error (a msgpack map with `ok: false` and a string `code`),
+    or None when it is not one.
+
+    Read leniently, so that a peer of another version still gets its error across: a code this
+    version does not know becomes INTERNAL_ERROR (docs/protocol.md), its own code kept at the
+    front of the message and in `details.code`; keys beyond code, message and details are ignored.
+    """
+    try:
+        obj = unpack(payload)
+    except ProtocolError:
+        return None
+    if not isinstance(obj, dict) or obj.get("ok") is not False or not isinstance(obj.get("code"), str):
+        return None
+    message = obj.get("message") if isinstance(obj.get("message"), str) else ""
+    details: dict[str, Any] = dict(obj["details"]) if isinstance(obj.get("details"), dict) else {}
+    code = obj["code"]
+    if code not in KNOWN_CODES:
+        return ErrorReply(code=ErrorCode.INTERNAL_ERROR.value, message=f"{code}: {message}",
+                          details={**details, "code": code})
+    return ErrorReply(code=code, message=message, details=details)
+
+
+def _zenoh_text(payload: bytes, limit: int = 200) -> str:
+    text = payload.decode("utf-8", errors="replace")
+    return repr(text if len(text) <= limit else text[:limit] + "...")
+
+
+def reply_message(reply: zenoh.Reply, key: str, expected: type[M], timeout_s: float, started: float) -> M | ErrorReply:
+    """The one rule for a reply to a protocol query (every caller of this package uses it).
+
+    A structured error map, whether it came as `reply.err` or as an ordinary reply, is an
+    `ErrorReply`; an ordinary reply is decoded as `expected`. Anything else is `QueryFailed`:
+    Zenoh's own errors (their payload is Zenoh's text, such as "Timeout" when the query's
+    timeout passed without a reply) and payloads that are not messages.
+
+    Raises:
+        QueryFailed: naming the key, the timeout and what came back.
+    """
+    sample = reply.ok if reply.ok is not None else reply.err
+    payload = sample.payload.to_bytes()
+    error = error_reply(payload)
+    if error is not None:
+        return error
+    elapsed_s = time.monotonic() - started
+    if reply.ok is None:
+        raise QueryFailed(key, timeout_s, f"Zenoh ended the query with its own error after {elapsed_s:.1f} s: "
+                                          f"{_zenoh_text(payload)}")
+    try:
+        return expected.from_wire(payload)
+    except ProtocolError as exc:
+        raise QueryFailed(key, timeout_s, f"the reply is not a {expected.__name__}: {exc.message}") from exc
 
 
 def _no_reply(key: str, timeout_s: float, started: float) -> QueryFailed:
     # Zenoh drops a query that access control denies without telling the sender, so silence
     # is all a refused client sees: say so, rather than leave it to guess.
     return QueryFailed(
-        f"no reply on {key} after {time.monotonic() - started:.1f} s (timeout {timeout_s} s): no service answered. "
+        key, timeout_s,
+        f"no reply after {time.monotonic() - started:.1f} s: no service answered. "
         "It is not running or not reachable, died while handling the request, or the router's access "
         "control denied this client (Zenoh drops denied messages without an error)")
 
@@ -59,13 +126,18 @@ def query_one(session: zenoh.Session, key: str, request: Message, expected: type
               timeout_s: float) -> tuple[M | ErrorReply, str | None]:
     """Ask the best-matching service on `key` for one reply; returns it and the replier's Zenoh id.
 
+    Consolidation NONE hands the reply over the moment it arrives; Zenoh's default holds it
+    until the query ends, and a query the service does not end in time (see
+    `services.common.answer_query`) then ends in Zenoh's "Timeout" error with the reply
+    arriving after it.
+
     Raises:
-        QueryFailed: nothing answered within `timeout_s`.
+        QueryFailed: nothing answered within `timeout_s`, or the reply was not of the protocol.
     """
     started = time.monotonic()
-    for reply in session.get(key, payload=request.to_wire(), timeout=timeout_s):
-        sample = reply.ok if reply.ok is not None else reply.err
-        return decode_reply(sample.payload.to_bytes(), expected), _replier(reply)  # type: ignore[return-value]
+    for reply in session.get(key, payload=request.to_wire(), timeout=timeout_s,
+                             consolidation=zenoh.ConsolidationMode.NONE):
+        return reply_message(reply, key, expected, timeout_s, started), _replier(reply)
     raise _no_reply(key, timeout_s, started)
 
 
@@ -131,7 +203,8 @@ class RobonavClient:
         """Send to every service on `key` at once; return the first success as soon as it arrives.
 
         Without a success, the first error reply once every service answered or died (a dead
-        one is dropped by the router) or the timeout passed; `QueryFailed` if nothing answered.
+        one is dropped by the router) or the timeout passed; `QueryFailed` if no replier sent a
+        reply of the protocol.
         """
         started = time.monotonic()
         first_error: ErrorReply | None = None
@@ -139,19 +212,20 @@ class RobonavClient:
         # Consolidation NONE hands over each reply as it arrives; the default waits for all of them.
         replies = self.session.get(key, payload=request.to_wire(), target=zenoh.QueryTarget.ALL,
                                    consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
+        failure: QueryFailed | None = None
         for reply in replies:
-            sample = reply.ok if reply.ok is not None else reply.err
             try:
-                message = decode_reply(sample.payload.to_bytes(), expected)
-            except ProtocolError:
-                continue  # a malformed reply is not a valid one; others may still come
+                message = reply_message(reply, key, expected, timeout_s, started)
+            except QueryFailed as exc:
+                failure = failure or exc  # not a valid reply; others may still come
+                continue
             if not isinstance(message, ErrorReply):
                 self.last_replier = _replier(reply)
                 return message  # type: ignore[return-value]
             if first_error is None:
                 first_error, error_replier = message, _replier(reply)
         if first_error is None:
-            raise _no_reply(key, timeout_s, started)
+            raise failure or _no_reply(key, timeout_s, started)
         self.last_replier = error_replier
         return first_error
 

@@ -97,20 +97,43 @@ def reply_error(query: zenoh.Query, code: ErrorCode, message: str, details: dict
     query.reply_err(ErrorReply.from_error(ProtocolError(code, message, details)).to_wire())
 
 
+def answer_query(query: zenoh.Query, handler: Callable[[zenoh.Query], None], name: str) -> None:
+    """Run `handler` on `query`: any exception becomes a structured error reply, and the query
+    ends (its final reply goes out) when this returns.
+
+    Zenoh finishes a query only when the `Query` object is dropped, and Python drops it only
+    when nothing refers to it any more. Numba's first compile inside a handler kept exceptions
+    whose tracebacks reach the handler's frame, and so the query, in reference cycles that
+    only a full garbage collection frees: the reply was sent, but a client with Zenoh's default
+    consolidation holds a reply until the query ends, and got Zenoh's "Timeout" error instead.
+    Dropping the query here ends it when the handler is done, whatever still refers to it.
+    """
+    try:
+        handler(query)
+    except ProtocolError as exc:
+        _reply_error_safely(query, exc.code, exc.message, exc.details, name)
+    except Exception as exc:  # a service never dies on input; the error is logged and answered
+        log.exception("%s: unexpected error", name)
+        _reply_error_safely(query, ErrorCode.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}", None, name)
+    finally:
+        query.drop()
+
+
+def _reply_error_safely(query: zenoh.Query, code: ErrorCode, message: str, details: dict[str, Any] | None,
+                        name: str) -> None:
+    try:
+        reply_error(query, code, message, details)
+    except Exception:
+        log.exception("%s: could not send the error reply", name)
+
+
 def guarded_queryable(handler: Callable[[zenoh.Query], None], name: str) -> Callable[[zenoh.Query], None]:
-    """Wrap a query handler so that any exception becomes a structured error, never a dead service."""
+    """Wrap a short query handler (it runs on Zenoh's callback thread): any exception becomes
+    a structured error, never a dead service, and the query ends when the handler returns.
+    Handlers that take long go through `RequestWorkers` instead."""
 
     def wrapped(query: zenoh.Query) -> None:
-        try:
-            handler(query)
-        except ProtocolError as exc:
-            reply_error(query, exc.code, exc.message, exc.details)
-        except Exception as exc:  # a service never dies on input; the error is logged and answered
-            log.exception("%s: unexpected error", name)
-            try:
-                reply_error(query, ErrorCode.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
-            except Exception:
-                log.exception("%s: could not send the error reply", name)
+        answer_query(query, handler, name)
 
     return wrapped
 

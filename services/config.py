@@ -42,9 +42,30 @@ class ZenohConfig:
 class LimitsConfig:
     max_request_bytes: int = 16 * 1024 * 1024
     """Query payloads larger than this are refused with PAYLOAD_TOO_LARGE [bytes]."""
+    max_queued_requests: int = 8
+    """Requests that may wait for a busy worker (planner/plan, executor/execute); more: BUSY."""
+    max_planning_time_s: float = 3600.0
+    """Largest `allowed_planning_time` of a plan request [s]."""
+    max_planning_attempts: int = 100
+    """Largest `num_planning_attempts` of a plan request."""
+    max_goals: int = 256
+    """Most rows of a plan request's `goal_set`."""
+    max_waypoints: int = 10_000
+    """Most rows of an execute request's `path`."""
+    max_replan_attempts: int = 20
+    """Largest `replan_attempts` of an execute request."""
+    max_scene_objects: int = 1000
+    """Most `objects` (and `names`, `motions`) in one planner/scene or sim/objects request, and
+    most objects (world and attached) in the planner's scene."""
+    max_mesh_size: int = 100_000
+    """Most vertices, and most triangles, of one mesh object."""
 
     def __post_init__(self) -> None:
-        require(self.max_request_bytes > 0, f"limits.max_request_bytes must be > 0, got {self.max_request_bytes}")
+        for name in ("max_request_bytes", "max_queued_requests", "max_planning_attempts", "max_goals", "max_waypoints",
+                     "max_replan_attempts", "max_scene_objects", "max_mesh_size"):
+            value = getattr(self, name)
+            require(value > 0, f"limits.{name} must be > 0, got {value}")
+        require(self.max_planning_time_s > 0, f"limits.max_planning_time_s must be > 0, got {self.max_planning_time_s}")
 
 
 @dataclass(frozen=True)
@@ -83,6 +104,12 @@ class RobonavConfig:
         require(len(set(ids)) == len(ids), f"cameras have duplicate camera_id values: {ids}")
         unknown = sorted(set(self.sim.camera_noise) - set(ids))
         require(not unknown, f"sim.camera_noise names cameras that are not in cameras: {unknown} (cameras: {ids})")
+        require(self.planner.allowed_planning_time_s <= self.limits.max_planning_time_s,
+                f"planner.allowed_planning_time_s ({self.planner.allowed_planning_time_s}) is above "
+                f"limits.max_planning_time_s ({self.limits.max_planning_time_s})")
+        require(self.executor.replan_attempts <= self.limits.max_replan_attempts,
+                f"executor.replan_attempts ({self.executor.replan_attempts}) is above "
+                f"limits.max_replan_attempts ({self.limits.max_replan_attempts})")
         n = len(self.robot.joint_names)
         for i, goal in enumerate(self.demo.goals_rad):
             require(len(goal) == n, f"demo.goals_rad[{i}] has {len(goal)} values, expected {n}")

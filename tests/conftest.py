@@ -7,6 +7,12 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from robonav.services.cli import use_numba_cache_dir
+
+# As the `robonav` command does, before anything imports numba: compiled kernels go to the user's
+# compile cache (or NUMBA_CACHE_DIR), never into the source tree; service processes inherit it.
+NUMBA_CACHE_DIR = use_numba_cache_dir()
+
 import numpy as np
 import pytest
 

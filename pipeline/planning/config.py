@@ -55,6 +55,9 @@ class PlannerConfig:
     """Measure the path's minimum clearance for the reply (FCL distances at 12 states)."""
     first_map_wait_s: float = 2.0
     """How long a plan request waits for the first occupancy map before OCCUPANCY_MISSING [s]."""
+    workers: int = 2
+    """Plans the planner service runs at once, each in a collision world of its own: a long
+    request holds one worker while the others answer."""
 
     def __post_init__(self) -> None:
         require(self.allowed_planning_time_s > 0, f"planner.allowed_planning_time_s must be > 0, got {self.allowed_planning_time_s}")
@@ -68,6 +71,7 @@ class PlannerConfig:
                 f"planner.sphere_first_share must be in [0, 1], got {self.sphere_first_share}")
         require(self.sphere_first_exact_radius_rad >= 0,
                 f"planner.sphere_first_exact_radius_rad must be >= 0, got {self.sphere_first_exact_radius_rad}")
+        require(self.workers >= 1, f"planner.workers must be >= 1, got {self.workers}")
         require(self.start_escape_rad >= 0, f"planner.start_escape_rad must be >= 0, got {self.start_escape_rad}")
         require(self.start_escape_samples >= 0,
                 f"planner.start_escape_samples must be >= 0, got {self.start_escape_samples}")

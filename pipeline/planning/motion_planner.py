@@ -12,8 +12,7 @@ import dataclasses
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from collections.abc import Callable
 
 import numpy as np
 
@@ -24,6 +23,11 @@ from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.planning.ik import IkStatus, solve_ik
 from robonav.pipeline.planning.metrics import interpolate_path, max_joint_step_rad, path_length_rad
 from robonav.pipeline.planning.ompl_planners import PLANNER_CLASSES, JointSpaceProblem, OmplSpace, race
+from robonav.pipeline.planning.problem import PlanOutcome as PlanOutcome
+from robonav.pipeline.planning.problem import PlanProblem as PlanProblem
+from robonav.pipeline.planning.problem import PoseGoal as PoseGoal
+from robonav.pipeline.planning.problem import SearchMode as SearchMode
+from robonav.pipeline.planning.problem import StartEscape as StartEscape
 from robonav.pipeline.planning.result import PlanResult, PlanStatus
 from robonav.pipeline.planning.shortcut import shortcut_path
 from robonav.pipeline.planning.start_escape import escape_start
@@ -39,90 +43,6 @@ MAX_SELF_OVERFLAG = 0.75
 (the Panda with its finger pairs allowed: 0.3 of random states; with them checked: 1.0)."""
 _AUTO_HISTORY = 20
 """Outcomes per planner that `auto` remembers for the current world."""
-
-
-@dataclass(frozen=True)
-class PoseGoal:
-    """A Cartesian goal for one link, solved by IK into a goal set.
-
-    Attributes:
-        link: Link whose frame must reach the target.
-        world_from_target: (4, 4) target pose of the link frame in the world frame.
-        position_tolerance_m: Largest position error [m].
-        orientation_tolerance_rad: Largest rotation angle error [rad]; None = position only.
-    """
-
-    link: str
-    world_from_target: FloatArray
-    position_tolerance_m: float = 1e-3
-    orientation_tolerance_rad: float | None = 0.01
-
-
-@dataclass(frozen=True)
-class PlanProblem:
-    """One plan query. Exactly one of `goals_rad` and `pose_goal` is given."""
-
-    start_rad: FloatArray
-    """(n,) start configuration in the robot's joint order [rad]."""
-    goals_rad: FloatArray | None = None
-    """(n,) goal or (G, n) goal set [rad]; the path ends at whichever goal it reaches."""
-    pose_goal: PoseGoal | None = None
-    planner_id: str = "rrtconnect"
-    allowed_planning_time_s: float = 2.0
-    num_planning_attempts: int = 1
-    """Attempts within the time budget; the shortest path wins (MoveIt's parameter)."""
-    seed: int = 0
-    """Seeds IK restarts, goal sampling, shortcutting and `auto`'s probes. OMPL's own sampler
-    is seeded once per process (see `seed_ompl_once`)."""
-    simplify: bool = True
-    goal_tolerance_rad: float = 0.0
-    """A joint goal that is in collision or out of limits may be replaced by valid states
-    within this distance in every joint [rad] (MoveIt's joint constraint tolerance)."""
-    workspace_min_m: FloatArray | None = None
-    """(3,) lower corner of a world-frame box the end-effector link must stay in [m]."""
-    workspace_max_m: FloatArray | None = None
-    """(3,) upper corner of that box [m]."""
-
-
-SearchMode = Literal["", "sphere_first", "exact"]
-
-
-@dataclass(frozen=True)
-class StartEscape:
-    """How a plan left a start inside the robot's padding (see `start_escape`)."""
-
-    from_rad: FloatArray
-    """(n,) the requested start [rad]."""
-    to_rad: FloatArray
-    """(n,) the free state the search started from [rad]."""
-    pairs: tuple[str, ...]
-    """The `link|obstacle` pairs in contact at the requested start."""
-
-
-@dataclass(frozen=True)
-class PlanOutcome:
-    status: PlanStatus
-    detail: str
-    path: FloatArray | None = None
-    """(K, n) waypoints [rad] when status is SUCCESS."""
-    details: dict[str, Any] = field(default_factory=dict)
-    """Machine-readable specifics of a failure (colliding pairs, violated joints), as an error
-    reply's `details` carries them."""
-    search: SearchMode = ""
-    """Which search found the path: sphere-first or exact ("" before any search ran)."""
-    start_escape: StartEscape | None = None
-    """Set when the start was inside the padding and the path begins with a way out of it."""
-    attempt_lengths_rad: tuple[float, ...] = ()
-    """Path length of every successful attempt of `num_planning_attempts` [rad]."""
-    planner_id: str = ""
-    """The planner that produced the path (for `auto`, the one it chose or that won the race)."""
-    planning_time_s: float = 0.0
-    simplification_time_s: float = 0.0
-    path_length_rad: float = 0.0
-    max_joint_step_rad: float = 0.0
-    min_clearance_m: float = float("inf")
-    goal_index: int = 0
-    """Which goal of the goal set the path ends at."""
 
 
 class MotionPlanner:
@@ -196,7 +116,7 @@ class MotionPlanner:
         deadline = t0 + problem.allowed_planning_time_s
         for _attempt in range(problem.num_planning_attempts):
             budget = deadline - time.perf_counter()
-            if budget <= 0:
+            if budget <= 0 or (problem.stop is not None and problem.stop()):
                 break
             outcome = self._attempt(problem, start, goals, is_valid, motion_valid, budget, rng)
             if outcome.status is PlanStatus.SUCCESS:
@@ -395,14 +315,14 @@ class MotionPlanner:
             # At least a millisecond: the direct check or a failed path may have used the budget up.
             remaining_s = max(deadline - time.perf_counter(), 1e-3)
             if problem.planner_id == "auto":
-                planner_id, result = self._auto(start, goals, remaining_s, rng)
+                planner_id, result = self._auto(start, goals, remaining_s, rng, problem.stop)
             elif planner_id in PLANNER_CLASSES:
                 if is_valid is self._is_valid:
-                    result = self._space.solve(planner_id, start, goals, time_limit_s=remaining_s)
+                    result = self._space.solve(planner_id, start, goals, time_limit_s=remaining_s, stop=problem.stop)
                 else:  # workspace bounds: a roadmap checked without them cannot be reused
                     space = OmplSpace(JointSpaceProblem(self.robot.lower_limits_rad, self.robot.upper_limits_rad,
                                                         is_valid, motion_valid), range_rad=self.config.range_rad)
-                    result = space.solve(planner_id, start, goals, time_limit_s=remaining_s)
+                    result = space.solve(planner_id, start, goals, time_limit_s=remaining_s, stop=problem.stop)
             else:
                 result = self._baseline(planner_id, start, goals, is_valid, motion_valid, remaining_s, rng)
             self._remember(planner_id, result.success)
@@ -413,7 +333,7 @@ class MotionPlanner:
             # A sampled path that fails the finer re-check is drawn again while time is left (the
             # deterministic baselines would only find the same path).
             if (outcome.status is PlanStatus.SUCCESS or planner_id in BASELINES
-                    or time.perf_counter() >= deadline):
+                    or time.perf_counter() >= deadline or (problem.stop is not None and problem.stop())):
                 return outcome
 
     def _baseline(self, planner_id: str, start: FloatArray, goals: FloatArray, is_valid: StateValidFn,
@@ -448,11 +368,11 @@ class MotionPlanner:
         working = [p for p in candidates if p not in failing]
         return working or candidates
 
-    def _auto(self, start: FloatArray, goals: FloatArray, budget_s: float,
-              rng: np.random.Generator) -> tuple[str, PlanResult]:
+    def _auto(self, start: FloatArray, goals: FloatArray, budget_s: float, rng: np.random.Generator,
+              stop: Callable[[], bool] | None = None) -> tuple[str, PlanResult]:
         candidates = self.auto_candidates(start, goals, rng)
         if len(candidates) == 1:
-            return candidates[0], self._space.solve(candidates[0], start, goals, time_limit_s=budget_s)
+            return candidates[0], self._space.solve(candidates[0], start, goals, time_limit_s=budget_s, stop=stop)
         return race(self._space, candidates, start, goals, time_limit_s=budget_s)
 
     def _cluttered(self, q: FloatArray, rng: np.random.Generator, probes: int = 8, spread_rad: float = 0.1) -> bool:

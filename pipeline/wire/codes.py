@@ -33,6 +33,8 @@ class ErrorCode(str, enum.Enum):
     INTERNAL_ERROR = "INTERNAL_ERROR"
     PAYLOAD_TOO_LARGE = "PAYLOAD_TOO_LARGE"
     """The request payload is larger than the service's `limits.max_request_bytes`."""
+    BUSY = "BUSY"
+    """Every worker of the service is busy and its queue of waiting requests is full."""
     # The executor reports these in `executor/status` (`error_code`) when it stopped a motion.
     JOINT_STATE_STALE = "JOINT_STATE_STALE"
     """No joint state for longer than the watchdog timeout while moving."""

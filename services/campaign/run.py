@@ -278,7 +278,7 @@ def run_campaign(args: argparse.Namespace, cfg: RobonavConfig, config_path: Path
             runner = SceneRunner(cfg, client, goals_per_scene=args.goals_per_scene, guard=not args.no_guard,
                                  velocity_scaling=args.velocity_scaling, seed=args.seed,
                                  moving_speed_factor=args.moving_speed)
-            client.query(client.keys.sim_stats, SimStatsRequest(reset=True), SimStatsResponse, 10.0)
+            _sim_stats(client, reset=True)
             progress = tqdm(total=len(scenes), desc="campaign", unit="scene", file=sys.stderr, mininterval=1.0)
             interrupted, aborted = False, ""
             try:
@@ -310,9 +310,7 @@ def run_campaign(args: argparse.Namespace, cfg: RobonavConfig, config_path: Path
             finally:
                 runner.close()
             progress.close()
-            stats = client.query(client.keys.sim_stats, SimStatsRequest(), SimStatsResponse, 10.0)
-            summary = summarize(records, monitors, cfg, args, time.monotonic() - started,
-                                None if isinstance(stats, ErrorReply) else stats)
+            summary = summarize(records, monitors, cfg, args, time.monotonic() - started, _sim_stats(client))
             summary.update(interrupted=interrupted, aborted=aborted or None, resets=runner.resets,
                            scenes_failed=sum(1 for r in records if r.get("error")))
             monitors.close()
@@ -321,6 +319,19 @@ def run_campaign(args: argparse.Namespace, cfg: RobonavConfig, config_path: Path
         codes = stack.close()
     summary["service_exit_codes"] = codes
     return summary
+
+
+def _sim_stats(client: RobonavClient, *, reset: bool = False) -> SimStatsResponse | None:
+    """The sim's real-time statistics, or None (logged) when the query failed: they are not worth the campaign."""
+    try:
+        stats = client.query(client.keys.sim_stats, SimStatsRequest(reset=reset), SimStatsResponse, 10.0)
+    except QueryFailed as exc:
+        log.warning("sim/stats: %s", exc)
+        return None
+    if isinstance(stats, ErrorReply):
+        log.warning("sim/stats: %s: %s", stats.code, stats.message)
+        return None
+    return stats
 
 
 def _interrupt(signum: int, _frame: Any) -> None:

@@ -45,9 +45,9 @@ log = logging.getLogger("robonav.campaign")
 MAX_ATTEMPTS = 4
 """Plans per goal: the first and up to three replans."""
 RETRYABLE = {"NO_SOLUTION", "START_IN_COLLISION", "GOAL_IN_COLLISION", "OCCUPANCY_STALE", "OCCUPANCY_MISSING",
-             "NO_JOINT_STATE", "INVALID_REQUEST"}
+             "NO_JOINT_STATE", "INVALID_REQUEST", "BUSY"}
 """Plan or execute errors worth another try on a fresher map or state (INVALID_REQUEST: a path
-that no longer starts at the measured state)."""
+that no longer starts at the measured state; BUSY: every worker was busy)."""
 HOME_TOLERANCE_RAD = 0.05
 MAP_SETTLE_FRAMES = 3
 """Frames of the slowest camera integrated after a scene swap before planning in it."""
@@ -268,7 +268,10 @@ class SceneRunner:
             record = GoalRecord(index, g, np.round(goal, 4).tolist(), reference.status is PlanStatus.SUCCESS, detour,
                                 moving=moving and g == 0)
             self._intruder_at_rest = None
-            self._move(goal, record)
+            try:
+                self._move(goal, record)
+            except QueryFailed as exc:  # a slow or lost reply fails this goal, not the scene or the campaign
+                record.errors.append(f"no_reply: {exc.reason}")
             if record.feasible and self._intruder_at_rest is not None:
                 record.feasible = self._reachable_with(self._intruder_at_rest, start, goal, record)
             records.append(record)

@@ -53,6 +53,8 @@ from robonav.services.config import RobonavConfig
 from robonav.services.executor.path_monitor import Execution, PathMonitor
 from robonav.services.executor.setpoint_stream import SetpointStream, StreamStats
 from robonav.services.keys import Keys
+from robonav.services.limits import check_execute_request
+from robonav.services.workers import RequestWorkers
 
 log = logging.getLogger("robonav.executor")
 
@@ -100,6 +102,10 @@ class ExecutorNode(Node):
         self._generation = 0
         self._blocked_after_frame_s: float | None = None
         self._blocked_stamp: float | None = None
+        # Before the service is alive: the first execute costs what later ones do (the path
+        # monitor warms its guard's compiled kernels too).
+        home = self.robot.home_position_rad
+        self._time_parameterize(np.vstack([home, home + 0.05, home + np.linspace(0.0, 0.1, len(home))]), None, None)
         self.monitor = PathMonitor(self) if cfg.executor.monitor_path else None
         self._map_sub = (declare_latched_subscriber(session, keys.occupancy, self.monitor.on_occupancy)
                          if self.monitor is not None else None)
@@ -110,8 +116,12 @@ class ExecutorNode(Node):
         # keep the cyclic collector's full passes short.
         sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
         gc.freeze()
+        # An execute (time parameterisation: corner blends) runs on a worker thread, one at a time in
+        # arrival order; a stop is short and is answered on Zenoh's callback thread, never behind one.
+        self._workers = RequestWorkers("executor", lambda query, _worker: self.handle_execute(query), workers=1,
+                                       queue_size=cfg.limits.max_queued_requests)
         self._queryables = [
-            session.declare_queryable(keys.execute, guarded_queryable(self.handle_execute, "executor")),
+            session.declare_queryable(keys.execute, self._workers.callback),
             session.declare_queryable(keys.stop, guarded_queryable(self.handle_stop, "executor")),
         ]
 
@@ -126,6 +136,7 @@ class ExecutorNode(Node):
 
     def handle_execute(self, query: zenoh.Query) -> None:
         request = decode_request(query, ExecuteRequest)
+        check_execute_request(request, self.cfg.limits)
         path = reorder_to_robot(request.path, request.joint_names, self.robot.joint_names, "path")
         for i, q in enumerate(path):
             violations = self.robot.check_joint_limits(q)
@@ -261,6 +272,7 @@ class ExecutorNode(Node):
             self.monitor.close(timeout_s=self.cfg.executor.replan_timeout_s + 1.0)
         for q in self._queryables:
             q.undeclare()
+        self._workers.close()
         if self._map_sub is not None:
             self._map_sub.undeclare()
         self._sub.undeclare()

@@ -200,46 +200,66 @@ class PathMonitor:
                     execution.trajectory_id, occupancy.seq, delay_s * 1e3, outcome)
 
     def _replan(self, execution: Execution) -> None:
-        """At rest after a block: plan from here to the goal and stream the new path, or give up."""
+        """At rest after a block: plan from here to the goal and stream the new path, or give up.
+
+        Ends within `replans_left` x `executor.replan_timeout_s` in every case: each attempt is
+        one plan request, whatever becomes of it (a plan, a structured error, no reply, a reply
+        that is not a plan, a path that cannot be followed) uses one attempt up, and waiting for
+        a settled map or between attempts comes out of the same budget. Then PATH_BLOCKED."""
         with self._node._lock:
             last = self._node.machine.last_setpoint
         if last is None:
             return
-        self.wait_settled_map(time.time())
+        timeout_s = self._node.cfg.executor.replan_timeout_s
+        deadline = time.monotonic() + execution.replans_left * timeout_s
         errors: list[str] = []
+        try:
+            self._replan_attempts(execution, last.position, deadline, errors)
+        except Exception as exc:  # noqa: BLE001 - whatever went wrong, replanning ends here, not in a loop
+            log.exception("%s: replanning failed", execution.trajectory_id)
+            errors.append(f"{type(exc).__name__}: {exc}")
+        finally:
+            with self._node._lock:  # still replanning this execution: every attempt failed
+                if self._node._execution is execution and self._node.machine.state is ExecutionState.REPLANNING:
+                    self._node.machine.fault(time.monotonic(), ErrorCode.PATH_BLOCKED,
+                                             f"a new obstacle blocks '{execution.trajectory_id}' and replanning failed: "
+                                             + "; ".join(errors[-3:] or [f"no plan within {execution.replans_left} x {timeout_s} s"]))
+
+    def _replan_attempts(self, execution: Execution, start: np.ndarray, deadline: float, errors: list[str]) -> None:
+        """Plan requests until one is streamed, the attempts or the time run out, or the execution changed."""
+        timeout_s = self._node.cfg.executor.replan_timeout_s
+        self.wait_settled_map(time.time(), deadline)
         left = execution.replans_left
-        while left > 0:
+        while left > 0 and time.monotonic() < deadline:
             left -= 1
             attempt = execution.replans_left - left
             request = PlanRequest(goal_positions=execution.path[-1], joint_names=self._node.robot.joint_names,
-                                  start_positions=last.position,
+                                  start_positions=start,
                                   seed=zlib.crc32(execution.trajectory_id.encode()) + self._node.machine.replans * 10 + attempt,
                                   request_id=f"{execution.trajectory_id}-replan-{self._node.machine.replans + 1}")
             try:
                 reply, _ = query_one(self._node._session, self._node._keys.plan, request, PlanResponse,
-                                     self._node.cfg.executor.replan_timeout_s)
+                                     max(0.1, min(timeout_s, deadline - time.monotonic())))
+                if isinstance(reply, PlanResponse) and self._start_replanned(execution, reply, left):
+                    return
+                errors.append(f"{reply.code}: {reply.message}" if isinstance(reply, ErrorReply) else "the plan was not taken")
             except QueryFailed as exc:
-                reply = ErrorReply(code="INTERNAL_ERROR", message=str(exc))
-            if isinstance(reply, PlanResponse):
-                self._start_replanned(execution, reply, left)
-                return
-            errors.append(f"{reply.code}: {reply.message}")
+                errors.append(f"no plan: {exc}")
+            except Exception as exc:  # noqa: BLE001 - e.g. a path that cannot be timed: this attempt failed
+                log.exception("%s: replan %d", execution.trajectory_id, attempt)
+                errors.append(f"{type(exc).__name__}: {exc}")
             log.warning("%s: replan %d failed: %s", execution.trajectory_id, attempt, errors[-1])
-            if left > 0 and self._stop.wait(self._node.cfg.executor.replan_delay_s):
-                return
             with self._node._lock:
                 if self._node._execution is not execution or self._node.machine.state is not ExecutionState.REPLANNING:
-                    return
-        with self._node._lock:
-            if self._node._execution is execution and self._node.machine.state is ExecutionState.REPLANNING:
-                self._node.machine.fault(time.monotonic(), ErrorCode.PATH_BLOCKED,
-                                   f"a new obstacle blocks '{execution.trajectory_id}' and replanning failed: "
-                                   + "; ".join(errors[-3:]))
+                    return  # a new request or a stop came in meanwhile
+            pause_s = min(self._node.cfg.executor.replan_delay_s, deadline - time.monotonic())
+            if left > 0 and pause_s > 0 and self._stop.wait(pause_s):
+                return
 
-    def wait_settled_map(self, rested_at: float) -> None:
+    def wait_settled_map(self, rested_at: float, deadline: float = float("inf")) -> None:
         """Hold the replan until the two newest held maps, both stamped after `rested_at`, agree
-        (`map_settled`), or `executor.replan_settle_s` passes."""
-        deadline = time.monotonic() + self._node.cfg.executor.replan_settle_s
+        (`map_settled`), or `executor.replan_settle_s` passes (or the monotonic `deadline`)."""
+        deadline = min(deadline, time.monotonic() + self._node.cfg.executor.replan_settle_s)
         judged: bytes | None = None  # the newest map already compared with the one before
         while time.monotonic() < deadline:
             with self._map_lock:
@@ -253,13 +273,14 @@ class PathMonitor:
             if self._stop.wait(0.02):
                 return
 
-    def _start_replanned(self, execution: Execution, plan: PlanResponse, replans_left: int) -> None:
+    def _start_replanned(self, execution: Execution, plan: PlanResponse, replans_left: int) -> bool:
+        """Stream the new path; False when a request or a stop came in while planning."""
         path = reorder_to_robot(plan.path, plan.joint_names, self._node.robot.joint_names, "path")
         trajectory = self._node._time_parameterize(path, execution.velocity_scaling, execution.acceleration_scaling)
         baseline_map = self.baseline_map(plan.occupancy_stamp)
         with self._node._lock:
             if self._node._execution is not execution or self._node.machine.state is not ExecutionState.REPLANNING:
-                return  # a new request or a stop came in while planning
+                return False  # a new request or a stop came in while planning
             self._node.machine.start(trajectory, execution.trajectory_id, self._node._switch_time(), replanned=True)
             self._node._stream_latest()
             self._node._generation += 1
@@ -269,3 +290,4 @@ class PathMonitor:
         log.info("%s: replanned (%d waypoints, %.2f s)", execution.trajectory_id, len(path), duration_s)
         self._node._path_pub.put(ExecutorPath(stamp=time.time(), trajectory_id=execution.trajectory_id,
                                         joint_names=self._node.robot.joint_names, path=path, duration_s=duration_s).to_wire())
+        return True

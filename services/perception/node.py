@@ -19,7 +19,7 @@ import zenoh
 
 from robonav.pipeline.perception.clusters import cluster_voxels
 from robonav.pipeline.perception.maps.factory import make_occupancy_map
-from robonav.pipeline.perception.maps.protocol import CameraFrame, FrameRejected
+from robonav.pipeline.perception.maps.protocol import FrameRejected
 from robonav.pipeline.perception.self_filter import perception_filters
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name
@@ -45,6 +45,8 @@ from robonav.services.common import (
 )
 from robonav.services.config import RobonavConfig, perceived_world_from_camera
 from robonav.services.keys import Keys
+from robonav.services.perception.frames import camera_frame
+from robonav.services.perception.warm_up import warm_up_perception
 
 log = logging.getLogger("robonav.perception")
 
@@ -119,6 +121,8 @@ class PerceptionNode(Node):
         """Wall time of the last perception/clear: frames taken before it are dropped."""
         self._newest_stamp = 0.0
         self._label_names: dict[int, str] = {}
+        # Before any frame arrives, and before the service is alive: the first frame costs what any other does.
+        warm_up_perception(cfg, self.robot, self.self_filter, self.clear_filter)
         self._pending: dict[str, zenoh.Sample] = {}  # latest unprocessed frame per key
         self._pending_lock = threading.Lock()
         self._wake = threading.Event()
@@ -200,14 +204,7 @@ class PerceptionNode(Node):
         self._last_stamp[cloud.camera_id] = cloud.stamp
         if cloud.label_names:
             self._label_names.update(cloud.label_names)
-        if isinstance(cloud, DepthImage):
-            depth, points, labels = cloud.depth_m, None, cloud.labels
-        else:
-            depth, points, labels = None, cloud.points, None
-        frame = CameraFrame(intrinsics=cloud.intrinsics or camera.intrinsics,
-                            world_from_camera=self.world_from_camera[cloud.camera_id],
-                            world_from_link=self.robot.link_poses(q), depth_m=depth, points_camera_m=points,
-                            labels=labels)
+        frame = camera_frame(cloud, camera, self.world_from_camera[cloud.camera_id], self.robot, q)
         with self._map_lock:
             if self._taken_before_clear(cloud):  # cleared while this frame was being prepared
                 return False

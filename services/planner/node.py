@@ -1,7 +1,11 @@
 """Planner service: answers `planner/plan` with collision-free joint paths.
 
-Keeps the latest occupancy map (as an FCL octree) and the latest joint state (the default
-start), and hands each request to `MotionPlanner`.
+Keeps the latest occupancy map and the latest joint state (the default start), and hands each
+request to a worker thread (`planner.workers`), which plans with `MotionPlanner` in a world of
+its own (`plan_worker.py`): a long request holds one worker, and the others go on answering.
+Scene changes (`planner/scene`) apply to the scene at once; each worker copies them, and the
+newest map, into its world before its next plan. Before the service declares itself alive,
+every worker has planned once (`warm_up.py`), so the first request costs what any other does.
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ import numpy as np
 import zenoh
 
 from robonav.pipeline.collision.world import CollisionWorld
-from robonav.pipeline.planning.motion_planner import PLANNERS, MotionPlanner, PlanProblem, PoseGoal
+from robonav.pipeline.planning.motion_planner import PLANNERS, PlanProblem, PoseGoal
 from robonav.pipeline.planning.ompl_planners import seed_ompl_once
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.model import RobotModel
@@ -35,7 +39,11 @@ from robonav.services.common import (
 )
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
+from robonav.services.limits import check_plan_request
+from robonav.services.planner.plan_worker import PlanWorker
 from robonav.services.planner.scene import PlanningScene
+from robonav.services.planner.warm_up import warm_up_worker
+from robonav.services.workers import RequestWorkers
 
 log = logging.getLogger("robonav.planner")
 
@@ -52,28 +60,34 @@ class PlannerNode(Node):
     def __init__(self, cfg: RobonavConfig, session: zenoh.Session) -> None:
         self.cfg = cfg
         self.robot = RobotModel.from_config(cfg.robot)
-        self.world = CollisionWorld(self.robot, padding_m=cfg.robot.padding_m)
-        # Before the planner exists: building its OMPL space already draws random numbers, and a
+        # Before any planner exists: building an OMPL space already draws random numbers, and a
         # seed set after that has no effect (OMPL logs "Random number generation already started").
         seed_ompl_once(cfg.planner.seed)
-        self.planner = MotionPlanner(self.robot, self.world, cfg.planner)
-        self._lock = threading.Lock()  # one plan at a time; map swaps wait for it
         self._state_lock = threading.Lock()
         self._joint_state: JointState | None = None
-        self._pending_map: Occupancy | None = None
-        self._map_stamp: float | None = None
+        self._newest_map: Occupancy | None = None
         self._map_received_monotonic: float | None = None
         self._first_map = threading.Event()
+        self._stopping = threading.Event()
+        """Set when the service stops: running plans end early (their OMPL search polls it)."""
+        # The scene's world only keeps the objects (no plan runs in it, so no broad phase).
+        self.scene = PlanningScene(CollisionWorld(self.robot, padding_m=cfg.robot.padding_m, broad_phase=False),
+                                   threading.Lock(), current_q=self._start_from_joint_state, limits=cfg.limits)
+        self.plan_workers = [PlanWorker.create(self.robot, cfg.robot.padding_m, cfg.planner)
+                             for _ in range(cfg.planner.workers)]
+        for worker in self.plan_workers:
+            warm_up_worker(worker, seed=cfg.planner.seed)
         keys = Keys(cfg.cell)
         self._subs = [
             session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "planner")),
             declare_latched_subscriber(session, keys.occupancy, guarded_subscriber(self.on_occupancy, "planner")),
         ]
+        # Plans run on worker threads: a long one must not hold Zenoh's callback thread.
+        self._workers = RequestWorkers("planner", self.handle_plan, workers=len(self.plan_workers),
+                                       queue_size=cfg.limits.max_queued_requests)
         # complete: any one planner can answer a plan request, so a best-matching query reaches
         # exactly one of several replicas (a client races them all with target ALL).
-        self._queryable = session.declare_queryable(keys.plan, guarded_queryable(self.handle_plan, "planner"),
-                                                    complete=True)
-        self.scene = PlanningScene(self.world, self._lock, current_q=self._start_from_joint_state)
+        self._queryable = session.declare_queryable(keys.plan, self._workers.callback, complete=True)
         self._scene_queryable = session.declare_queryable(keys.scene, guarded_queryable(self.scene.handle_scene, "planner"))
 
     def on_joint_state(self, sample: zenoh.Sample) -> None:
@@ -84,16 +98,9 @@ class PlannerNode(Node):
     def on_occupancy(self, sample: zenoh.Sample) -> None:
         occupancy = Occupancy.from_wire(sample.payload.to_bytes())
         with self._state_lock:
-            self._pending_map = occupancy
+            self._newest_map = occupancy
             self._map_received_monotonic = time.monotonic()
         self._first_map.set()
-
-    def _apply_pending_map(self) -> None:
-        with self._state_lock:
-            pending, self._pending_map = self._pending_map, None
-        if pending is not None:
-            self.world.set_octree(pending.octomap_binary, pending.resolution_m, pending.occupied_centers_m)
-            self._map_stamp = pending.stamp
 
     def _start_from_joint_state(self) -> np.ndarray:
         with self._state_lock:
@@ -121,8 +128,9 @@ class PlannerNode(Node):
                                 f"newest occupancy map is {age:.1f} s old (limit {self.cfg.planner.occupancy_max_age_s} s)",
                                 {"age_s": age})
 
-    def handle_plan(self, query: zenoh.Query) -> None:
+    def handle_plan(self, query: zenoh.Query, worker: int) -> None:
         request = decode_request(query, PlanRequest)
+        check_plan_request(request, self.cfg.limits)
         names = self.robot.joint_names
         if request.start_positions is not None:
             start = reorder_to_robot(request.start_positions, request.joint_names, names, "start_positions")
@@ -141,14 +149,19 @@ class PlannerNode(Node):
             simplify=self.cfg.planner.simplify if request.simplify is None else request.simplify,
             goal_tolerance_rad=request.goal_tolerance_rad or 0.0,
             workspace_min_m=request.workspace_min_m, workspace_max_m=request.workspace_max_m,
+            stop=self._stopping.is_set,
         )
-        with self._lock:
-            self._apply_pending_map()
-            try:
-                outcome = self.planner.plan(problem)
-            except ValueError as exc:  # shapes and values the decoder cannot know about
-                raise ProtocolError(ErrorCode.INVALID_REQUEST, str(exc)) from exc
-            map_stamp = self._map_stamp or 0.0
+        plan_worker = self.plan_workers[worker]
+        with self._state_lock:
+            newest_map = self._newest_map
+        # Between plans of this worker: what changed since its last one (a plan in flight on
+        # another worker keeps the scene and map it started with).
+        plan_worker.sync(self.scene.snapshot(), newest_map)
+        try:
+            outcome = plan_worker.planner.plan(problem)
+        except ValueError as exc:  # shapes and values the decoder cannot know about
+            raise ProtocolError(ErrorCode.INVALID_REQUEST, str(exc)) from exc
+        map_stamp = plan_worker.map_stamp
         if outcome.status is not PlanStatus.SUCCESS or outcome.path is None:
             reply_error(query, STATUS_CODES[outcome.status], outcome.detail, outcome.details)
             return
@@ -189,9 +202,17 @@ class PlannerNode(Node):
                                        else 0.01),
         )
 
+    def stop_planning(self) -> None:
+        """End the running plans early (their searches poll this) and every later one at once:
+        the service is stopping. Each gets its answer: an optimizing planner's best path so far,
+        or NO_SOLUTION."""
+        self._stopping.set()
+
     def close(self) -> None:
+        self.stop_planning()
         self._queryable.undeclare()
         self._scene_queryable.undeclare()
+        self._workers.close()
         for sub in self._subs:
             sub.undeclare()
 

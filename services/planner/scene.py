@@ -1,10 +1,12 @@
 """The planner's planning scene: collision objects added, moved, attached over `planner/scene`.
 
 `PlanningScene` is owned by the planner node. It keeps the world objects by name, mirrors them
-into the node's `CollisionWorld` (`set_objects`, `attach_object`, `detach_object`) and answers
-every request with the whole scene and a revision counter. It takes the node's planning lock
-for every change, so a plan never sees a half-applied request, and a request either applies
-completely or not at all.
+into a `CollisionWorld` of its own (`set_objects`, `attach_object`, `detach_object`: the robot's
+kinematics for attach and detach, FCL for the shapes) and answers every request with the whole
+scene and a revision counter. A request either applies completely or not at all, under the
+scene's own lock: it never waits for a plan. Plans run in the worlds of the planner's workers,
+which take a `snapshot` of the scene (immutable objects) and `copy_scene_into` their world
+between plans: a plan in flight keeps the scene it started with, the next one sees the change.
 """
 
 from __future__ import annotations
@@ -13,10 +15,12 @@ import dataclasses
 import logging
 import threading
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import zenoh
 
+from robonav.pipeline.collision.attached import AttachedObject
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
@@ -25,11 +29,33 @@ from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.joint_order import reorder_to_robot
 from robonav.pipeline.wire.messages import SceneObjectSpec, SceneRequest, SceneResponse
 from robonav.services.common import decode_request, reply_ok
+from robonav.services.config import LimitsConfig
+from robonav.services.limits import check_limit, check_scene_request
 from robonav.services.planner.scene_specs import checked, invalid_request, object_state, scene_object
 
 log = logging.getLogger("robonav.planner.scene")
 
 WORLD_FRAME = "world"
+
+
+@dataclass(frozen=True)
+class SceneSnapshot:
+    """The scene at one revision: what a planning worker copies into its own world."""
+
+    revision: int
+    objects: tuple[SceneObject, ...]
+    """World objects, posed in the world frame."""
+    attached: tuple[AttachedObject, ...]
+    """Attached objects, each posed in its link's frame."""
+
+
+def copy_scene_into(world: CollisionWorld, snapshot: SceneSnapshot) -> None:
+    """Make `world`'s objects and attached objects those of `snapshot` (the octree is left alone)."""
+    for attached in world.attached_objects:
+        world.detach_object(attached.name)
+    world.set_objects(snapshot.objects)
+    for attached in snapshot.attached:  # the object is posed in the link frame: link_from_object
+        world.attach_object(attached.object, attached.link, attached.touch_links, world_from_link=np.eye(4))
 
 
 class PlanningScene:
@@ -42,20 +68,24 @@ class PlanningScene:
         *,
         current_q: Callable[[], FloatArray] | None = None,
         initial_objects: Sequence[SceneObject] = (),
+        limits: LimitsConfig | None = None,
     ) -> None:
         """Take over the world's primitive objects.
 
         Args:
-            world: The planner's collision world; its objects are replaced by this scene's.
-            lock: Held while planning; every scene change takes it too.
+            world: The scene's collision world (no plan runs in it; `broad_phase=False` will do);
+                its objects are replaced by this scene's.
+            lock: Held for every change and snapshot; never held while planning.
             current_q: Returns the robot's latest (dof,) joint positions [rad] (or raises
                 `ProtocolError(NO_JOINT_STATE)`); used by attach/detach of world-posed objects
                 when the request carries no `joint_positions`.
             initial_objects: World objects the scene starts with (e.g. from the config).
+            limits: Request and scene size limits (default: the config's defaults).
         """
         self._world = world
         self._lock = lock
         self._current_q = current_q
+        self._limits = limits or LimitsConfig()
         self._objects: dict[str, SceneObject] = {o.name: o for o in initial_objects}
         self._revision = 0
         with self._lock:
@@ -65,9 +95,15 @@ class PlanningScene:
     def revision(self) -> int:
         return self._revision
 
+    def snapshot(self) -> SceneSnapshot:
+        """The scene as it is now (a request in progress is not half in it)."""
+        with self._lock:
+            return SceneSnapshot(self._revision, tuple(self._objects.values()), self._world.attached_objects)
+
     def handle_scene(self, query: zenoh.Query) -> None:
         """`planner/scene` handler; wrap it in `guarded_queryable` so errors become error replies."""
         request = decode_request(query, SceneRequest)
+        check_scene_request(request.objects, request.names, self._limits)
         response = self.apply(request)
         log.info("scene %s: revision %d, %d objects", request.operation, response.revision, len(response.objects))
         reply_ok(query, response)
@@ -182,6 +218,8 @@ class PlanningScene:
         return False
 
     def _set_world_objects(self, objects: dict[str, SceneObject]) -> None:
+        attached = {a.name for a in self._world.attached_objects}
+        check_limit("objects", len(objects.keys() | attached), self._limits.max_scene_objects, "max_scene_objects")
         try:
             self._world.set_objects(list(objects.values()))
         except ValueError as exc:

@@ -38,6 +38,7 @@ from robonav.pipeline.wire.messages import (
 from robonav.services.common import Node, decode_request, guarded_queryable, guarded_subscriber, reply_ok, run_service
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
+from robonav.services.limits import check_scene_request
 from robonav.services.sim.objects import SimObjects
 from robonav.services.sim.render import LabelRegistry, RenderJob, RenderWorker, snapshot_scene
 from robonav.services.sim.stats import LoopStats
@@ -133,6 +134,7 @@ class SimNode(Node):
 
     def handle_objects(self, query: zenoh.Query) -> None:
         request = decode_request(query, SimObjectsRequest)
+        check_scene_request(request.objects, request.names, self.cfg.limits, motions=len(request.motions))
         reply_ok(query, self._on_physics_thread(lambda: self.objects.apply(request)))
 
     def handle_stats(self, query: zenoh.Query) -> None:

@@ -33,7 +33,9 @@ from robonav.services.view.snapshot import snapshot_view
 
 log = logging.getLogger("robonav.demo")
 
-SERVICE_START_TIMEOUT_S = 60.0
+SERVICE_START_TIMEOUT_S = 300.0
+"""Longest wait for every service's liveliness token [s]. Services compile and warm up before
+they declare it: seconds with a filled compile cache (`robonav precompile`), minutes without."""
 SETTLE_TIMEOUT_S = 2.0
 """Longest wait after a trajectory ends for the arm to come within tolerance of the goal [s]."""
 
@@ -61,7 +63,9 @@ def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, i
     # Blocked means the goal needs a detour around a real obstacle.
     record: dict[str, Any] = {"index": index, "goal_rad": goal.round(4).tolist(),
                               "straight_line_blocked": not truth.motion_valid(start, goal, 0.01)}
+    asked = time.monotonic()
     plan = client.plan(goal, seed=seed + index, request_id=f"demo-{index}")
+    record["plan_wall_s"] = round(time.monotonic() - asked, 3)
     if isinstance(plan, ErrorReply):
         record.update(reached=False, error=f"plan: {plan.code}: {plan.message}")
         return record
@@ -99,6 +103,15 @@ def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, i
     return record
 
 
+def wait_for_services(client: RobonavClient, stack: Stack) -> set[str]:
+    """Wait until every service is alive; returns the missing ones (at once when one exited)."""
+    deadline = time.monotonic() + SERVICE_START_TIMEOUT_S
+    missing = set(SERVICES)
+    while missing and time.monotonic() < deadline and not stack.dead():
+        missing = client.wait_for_services(missing, min(5.0, deadline - time.monotonic()))
+    return missing
+
+
 def run_demo(cfg: RobonavConfig, config_path: Path, seed: int, *, view_port: int | None = None,
              snapshot: Path | None = None) -> dict[str, Any]:
     """`view_port`: also run `robonav view` there and keep everything up after the goals until
@@ -110,9 +123,10 @@ def run_demo(cfg: RobonavConfig, config_path: Path, seed: int, *, view_port: int
     try:
         with open_session(cfg.zenoh) as session:
             client = RobonavClient(session, cfg.cell)
-            missing = client.wait_for_services(SERVICES, SERVICE_START_TIMEOUT_S)
+            missing = wait_for_services(client, stack)
             if missing:
                 raise RuntimeError(f"services not up after {SERVICE_START_TIMEOUT_S:.0f} s: {sorted(missing)}; exited: {stack.dead()}")
+            summary["services_alive_s"] = round(time.monotonic() - started, 2)
             if not client.wait_for(lambda: client.occupancy is not None and client.joint_state is not None,
                                    cfg.demo.first_map_timeout_s):
                 raise RuntimeError(f"no occupancy map within {cfg.demo.first_map_timeout_s:.0f} s")

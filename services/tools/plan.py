@@ -5,9 +5,10 @@
 
 One planner answers (Zenoh's best match) unless `--race`, which asks every planner and takes
 the first valid plan. Prints one JSON object; exit code 0 when the plan (and the execution)
-succeeded, 1 on a structured error or a failed execution, 2 on a bad config, 3 when nothing
-answered within `--timeout` (no service, a dead planner, or access control refused us), 130
-after Ctrl-C. Ctrl-C (SIGINT, or SIGTERM) while the arm moves sends `executor/stop` and waits
+succeeded, 1 on a structured error (any code, BUSY included) or a failed execution, 2 on a bad
+config or request, 3 when a query got no reply of the protocol: nothing answered within
+`--timeout` (no service, a dead planner, access control refused us), Zenoh ended it with its
+own error (its "Timeout"), or the reply was not a message; 130 after Ctrl-C. Ctrl-C (SIGINT, or SIGTERM) while the arm moves sends `executor/stop` and waits
 until it rests before exiting (a second Ctrl-C: an emergency stop); before the execute was
 sent, nothing moves.
 """
@@ -67,14 +68,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def plan_and_execute(client: RobonavClient, args: argparse.Namespace, interrupt: Interrupt) -> tuple[int, dict[str, Any]]:
-    request = PlanRequest(
+def plan_request(args: argparse.Namespace) -> PlanRequest:
+    """Raises ValueError for a request the message refuses (e.g. joint vectors of different lengths)."""
+    return PlanRequest(
         goal_positions=None if args.goal is None else np.asarray(args.goal, float),
         goal_position_m=None if args.pose is None else np.asarray(args.pose, float),
         goal_quat_xyzw=None if args.quat is None else np.asarray(args.quat, float),
         start_positions=None if args.start is None else np.asarray(args.start, float),
         planner_id=args.planner_id, allowed_planning_time=args.planning_time, seed=args.seed,
     )
+
+
+def plan_and_execute(client: RobonavClient, args: argparse.Namespace, request: PlanRequest,
+                     interrupt: Interrupt) -> tuple[int, dict[str, Any]]:
+    """Raises QueryFailed when a query got no reply of the protocol."""
     started = time.monotonic()
     plan = client.plan_request(request, timeout_s=args.timeout, race=args.race)
     record: dict[str, Any] = {"race": args.race, "replier": client.last_replier,
@@ -128,6 +135,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"robonav plan: {exc}", file=sys.stderr)
         return EXIT_CONFIG
     try:
+        request = plan_request(args)
+    except ValueError as exc:
+        print(f"robonav plan: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    try:
         session = open_session(zcfg)
     except zenoh.ZError as exc:
         print(f"robonav plan: cannot reach the router at {', '.join(zcfg.connect)}: {exc}", file=sys.stderr)
@@ -135,11 +147,10 @@ def main(argv: list[str] | None = None) -> int:
     with session, Interrupt() as interrupt:
         client = RobonavClient(session, cfg.cell)
         try:
-            code, record = plan_and_execute(client, args, interrupt)
+            code, record = plan_and_execute(client, args, request, interrupt)
         except QueryFailed as exc:
-            code, record = EXIT_NO_REPLY, {"ok": False, "stage": "no_reply", "message": str(exc)}
-        except ValueError as exc:  # a request the message classes refuse (e.g. a NaN goal)
-            code, record = EXIT_CONFIG, {"ok": False, "stage": "request", "message": str(exc)}
+            code, record = EXIT_NO_REPLY, {"ok": False, "stage": "no_reply", "key": exc.key, "timeout_s": exc.timeout_s,
+                                           "message": str(exc)}
         finally:
             client.close()
     text = json.dumps(record, indent=2)

@@ -7,8 +7,9 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -41,6 +42,58 @@ def write_config(directory: Path, name: str, **sections: dict) -> Path:
     path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
     load_config(path)  # fail here, not in a service, if the test wrote a bad config
     return path
+
+
+def wait_until_served(session: zenoh.Session, key: str, timeout_s: float = 10.0) -> None:
+    """Wait until `session` sees a queryable on `key`: a query sent right after another session
+    declared one may reach the router before the declaration does, and get no reply at all."""
+    querier = session.declare_querier(key)
+    deadline = time.monotonic() + timeout_s
+    try:
+        while not querier.matching_status.matching:
+            assert time.monotonic() < deadline, f"no queryable on {key} after {timeout_s} s"
+            time.sleep(0.02)
+    finally:
+        querier.undeclare()
+
+
+class StandInPeer:
+    """A bare queryable on `key` standing in for a service: `answer(query)` runs for each query,
+    which is kept (a silent or slow peer holds its queries) and dropped by `close`, never while
+    its callback still runs (the callback holds it: dropping it then raises "Already borrowed").
+    With `observer`, waits until that session sees the queryable."""
+
+    def __init__(self, session: zenoh.Session, key: str, answer: Callable[[zenoh.Query], object], *,
+                 observer: zenoh.Session | None = None) -> None:
+        self.queries: list[zenoh.Query] = []
+        self._lock = threading.Lock()
+
+        def callback(query: zenoh.Query) -> None:
+            with self._lock:
+                self.queries.append(query)
+                answer(query)
+
+        self._queryable = session.declare_queryable(key, callback, complete=True)
+        if observer is not None:
+            wait_until_served(observer, key)
+
+    def close(self) -> None:
+        with self._lock:
+            for query in self.queries:
+                query.drop()
+            self._queryable.undeclare()
+
+
+@pytest.fixture
+def bus() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
+    """A router on a free port and two client sessions through it: (service side, client side)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
+    service = open_session(ZenohConfig(connect=(endpoint,)))
+    client = open_session(ZenohConfig(connect=(endpoint,)))
+    yield service, client
+    for s in (client, service, router):
+        s.close()
 
 
 @pytest.fixture(scope="session")

@@ -24,12 +24,12 @@ from robonav.pipeline.wire.messages import (
     Setpoint,
     StopResponse,
 )
-from robonav.services.client import RobonavClient
+from robonav.services.client import RobonavClient, reply_message
 from robonav.services.common import declare_latched_publisher, open_session
 from robonav.services.config import ZenohConfig, load_config
 from robonav.services.executor.node import ExecutorNode
 
-from ..conftest import free_port
+from ..conftest import StandInPeer, free_port
 
 CONFIG = load_config()
 HOME = np.array(CONFIG.robot.home_position_rad)
@@ -161,11 +161,10 @@ def _raw_execute(client: RobonavClient, path: np.ndarray) -> ErrorReply | Execut
     """An execute request encoded by hand, so shapes the Python constructor refuses can be sent."""
     payload = msgpack.unpackb(ExecuteRequest(path=HOME[None, :]).to_wire())
     payload["path"] = {"dtype": "<f8", "shape": list(path.shape), "data": path.astype("<f8").tobytes()}
+    started = time.monotonic()
     replies = client.session.get(client.keys.execute, payload=msgpack.packb(payload), timeout=5.0)
     for reply in replies:
-        if reply.ok is not None:
-            return ExecuteResponse.from_wire(reply.ok.payload.to_bytes())
-        return ErrorReply.from_wire(reply.err.payload.to_bytes())
+        return reply_message(reply, client.keys.execute, ExecuteResponse, 5.0, started)
     raise AssertionError("no reply")
 
 
@@ -192,6 +191,18 @@ def test_bad_requests_get_structured_errors(executor: tuple[ExecutorNode, Robona
     assert not robot.setpoints  # nothing moved
     ok = client.execute(_path(HOME, [0.05] * 7))  # and the service still serves
     assert isinstance(ok, ExecuteResponse)
+
+
+def test_requests_beyond_the_limits_are_refused(executor: tuple[ExecutorNode, RobonavClient, FakeRobot]) -> None:
+    node, client, robot = executor
+    node.cfg = dataclasses.replace(node.cfg, limits=dataclasses.replace(node.cfg.limits, max_waypoints=3,
+                                                                        max_replan_attempts=3))
+    reply = client.execute(_path(HOME, [0.05] * 7, [0.1] * 7, [0.15] * 7))
+    assert isinstance(reply, ErrorReply) and reply.code == "INVALID_REQUEST", reply
+    assert reply.details == {"key": "path", "value": 4, "limit": 3} and "limits.max_waypoints" in reply.message
+    reply = client.execute(_path(HOME, [0.05] * 7), replan=True, replan_attempts=4)
+    assert isinstance(reply, ErrorReply) and reply.details == {"key": "replan_attempts", "value": 4, "limit": 3}, reply
+    assert not robot.setpoints  # nothing moved
 
 
 def _map_with_cubes(centers_m: np.ndarray, stamp: float) -> bytes:
@@ -248,3 +259,54 @@ def test_a_replan_waits_for_maps_that_stopped_changing(executor: tuple[ExecutorN
         assert waiter.is_alive(), f"stopped waiting on the map stamped {stamp} s after the stop"
     waiter.join(timeout=5.0)
     assert not waiter.is_alive()
+
+
+@pytest.mark.parametrize("peer", ["silent", "late", "zenoh_error", "not_msgpack", "unknown_code"])
+def test_replanning_ends_in_path_blocked_whatever_the_planner_does(
+        executor: tuple[ExecutorNode, RobonavClient, FakeRobot], peer: str) -> None:
+    """A planner that never answers, answers after the timeout, or with something that is not a
+    plan: every replan attempt is used up and the execution ends in PATH_BLOCKED, within
+    replan_attempts x replan_timeout_s of the stop (it used to stay in `replanning`)."""
+    node, client, _ = executor
+    node.cfg = dataclasses.replace(node.cfg, executor=dataclasses.replace(
+        node.cfg.executor, replan_timeout_s=1.0, replan_delay_s=0.1, replan_settle_s=0.2))
+    timers: list[threading.Timer] = []
+
+    def answer(query: zenoh.Query) -> None:
+        if peer == "late":
+            timers.append(threading.Timer(3.0, lambda: query.reply_err(msgpack.packb(
+                {"v": 1, "ok": False, "code": "NO_SOLUTION", "message": "too late", "details": {}}))))
+            timers[-1].start()
+        elif peer == "zenoh_error":
+            query.reply_err(b"Timeout")
+        elif peer == "not_msgpack":
+            query.reply(query.key_expr, b"\xc1 not a plan")
+        elif peer == "unknown_code":
+            query.reply_err(msgpack.packb({"v": 1, "ok": False, "code": "FROM_THE_FUTURE", "message": "?", "details": {}}))
+
+    planner = StandInPeer(client.session, client.keys.plan, answer)
+    path = _path(HOME, [0.8, 0, 0, 0, 0, 0, 0])
+    hand = RobotModel.from_config(CONFIG.robot).link_poses(HOME + np.array([0.6, 0, 0, 0, 0, 0, 0]))["panda_hand"][:3, 3]
+    far = np.array([[-0.8, -0.8, 0.1]])
+    publisher = declare_latched_publisher(client.session, client.keys.occupancy)
+    publisher.put(_map_with_cubes(far, stamp=100.0))
+    assert client.wait_for(lambda: node.monitor.held_maps == 1, 5.0)
+    publisher.put(_map_with_cubes(np.vstack([far, hand]), stamp=101.0))  # planned on map 100: the hand's voxel is new
+    assert client.wait_for(lambda: node.monitor.held_maps == 2, 5.0)
+    reply = client.execute(path, trajectory_id="blocked", occupancy_stamp=100.0, replan=True, replan_attempts=2)
+    assert isinstance(reply, ExecuteResponse), reply
+    assert client.wait_for(lambda: client.status is not None and client.status.state == "replanning", 10.0)
+    replanning_at = time.monotonic()
+    assert client.wait_for(lambda: client.status.state == "error", 10.0), client.status  # type: ignore[union-attr]
+    took_s = time.monotonic() - replanning_at
+    status = client.status
+    assert status.trajectory_id == "blocked" and status.error_code == "PATH_BLOCKED", status
+    expected = {"silent": "'Timeout'", "late": "'Timeout'", "zenoh_error": "'Timeout'",
+                "not_msgpack": "not a PlanResponse", "unknown_code": "INTERNAL_ERROR: FROM_THE_FUTURE"}[peer]
+    assert expected in status.error_message, status.error_message
+    assert len(planner.queries) == 2 and took_s < 2 * 1.0 + 1.0, (len(planner.queries), took_s)  # two attempts, in budget
+    for timer in timers:
+        timer.cancel()
+        timer.join()
+    planner.close()
+    publisher.undeclare()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import socket
 import threading
+import time
 from collections.abc import Iterator
 
 import msgpack
@@ -14,7 +15,8 @@ import zenoh
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.wire.codec import Message
-from robonav.pipeline.wire.messages import ErrorReply, SceneObjectSpec, SceneRequest, SceneResponse, decode_reply
+from robonav.pipeline.wire.messages import ErrorReply, SceneObjectSpec, SceneRequest, SceneResponse
+from robonav.services.client import reply_message
 from robonav.services.common import guarded_queryable, open_session
 from robonav.services.config import ZenohConfig
 from robonav.services.keys import Keys
@@ -49,9 +51,9 @@ def scene_service(panda: RobotModel) -> Iterator[tuple[PlanningScene, CollisionW
 
 def _ask(client: zenoh.Session, request: Message | bytes) -> SceneResponse | ErrorReply:
     payload = request if isinstance(request, bytes) else request.to_wire()
+    started = time.monotonic()
     for reply in client.get(KEY, payload=payload, timeout=5.0):
-        sample = reply.ok if reply.ok is not None else reply.err
-        return decode_reply(sample.payload.to_bytes(), SceneResponse)  # type: ignore[return-value]
+        return reply_message(reply, KEY, SceneResponse, 5.0, started)
     raise AssertionError(f"no reply on {KEY}")
 
 

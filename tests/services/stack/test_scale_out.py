@@ -31,10 +31,9 @@ from robonav.pipeline.wire.messages import (
     SceneObjectSpec,
     SceneRequest,
     SceneResponse,
-    decode_reply,
 )
 from robonav.services import health
-from robonav.services.client import QueryFailed, RobonavClient
+from robonav.services.client import QueryFailed, RobonavClient, reply_message
 from robonav.services.common import open_session
 from robonav.services.config import ZenohConfig
 from robonav.services.tools import plan as plan_cli
@@ -62,11 +61,16 @@ def repliers(session: zenoh.Session, key: str, request: PlanRequest, target: zen
              timeout_s: float = 10.0) -> dict[str, object]:
     """Every reply to one query, by replier id: the decoded code ('ok' for a plan)."""
     out: dict[str, object] = {}
+    started = time.monotonic()
     for reply in session.get(key, payload=request.to_wire(), target=target,
                              consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s):
-        sample = reply.ok if reply.ok is not None else reply.err
-        message = decode_reply(sample.payload.to_bytes(), PlanResponse)
-        out[str(reply.replier_id.zid)] = message.code if isinstance(message, ErrorReply) else "ok"
+        replier = str(reply.replier_id.zid) if reply.replier_id is not None else "zenoh"
+        try:
+            message = reply_message(reply, key, PlanResponse, timeout_s, started)
+        except QueryFailed as exc:
+            out[replier] = f"failed: {exc.reason}"
+            continue
+        out[replier] = message.code if isinstance(message, ErrorReply) else "ok"
     return out
 
 
