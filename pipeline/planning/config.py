@@ -55,6 +55,11 @@ class PlannerConfig:
     """Measure the path's minimum clearance for the reply (FCL distances at 12 states)."""
     first_map_wait_s: float = 2.0
     """How long a plan request waits for the first occupancy map before OCCUPANCY_MISSING [s]."""
+    scene_file: str | None = None
+    """The planner service saves its planning scene (`planner/scene`) here after every change and
+    loads it at start, so a restarted planner keeps its objects; relative to the working directory.
+    None: not saved (`robonav up` then gives each stack's planner a file of its own, and
+    `robonav serve planner --scene-file FILE` overrides this)."""
 
     def __post_init__(self) -> None:
         require(self.allowed_planning_time_s > 0, f"planner.allowed_planning_time_s must be > 0, got {self.allowed_planning_time_s}")

@@ -6,6 +6,7 @@ start), and hands each request to `MotionPlanner`.
 
 from __future__ import annotations
 
+import argparse
 import logging
 import threading
 import time
@@ -36,6 +37,7 @@ from robonav.services.common import (
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
 from robonav.services.planner.scene import PlanningScene
+from robonav.services.planner.scene_file import SceneFile
 
 log = logging.getLogger("robonav.planner")
 
@@ -49,7 +51,8 @@ STATUS_CODES = {
 
 
 class PlannerNode(Node):
-    def __init__(self, cfg: RobonavConfig, session: zenoh.Session) -> None:
+    def __init__(self, cfg: RobonavConfig, session: zenoh.Session, *, scene_file: str | None = None) -> None:
+        """Args: scene_file: where the planning scene is kept across restarts (default `planner.scene_file`)."""
         self.cfg = cfg
         self.robot = RobotModel.from_config(cfg.robot)
         self.world = CollisionWorld(self.robot, padding_m=cfg.robot.padding_m)
@@ -71,7 +74,9 @@ class PlannerNode(Node):
         # exactly one of several replicas (a client races them all with target ALL).
         self._queryable = session.declare_queryable(keys.plan, guarded_queryable(self.handle_plan, "planner"),
                                                     complete=True)
-        self.scene = PlanningScene(self.world, self._lock, current_q=self._start_from_joint_state)
+        scene_file = scene_file or cfg.planner.scene_file
+        self.scene = PlanningScene(self.world, self._lock, current_q=self._start_from_joint_state,
+                                   scene_file=SceneFile(scene_file) if scene_file else None)
         self._scene_queryable = session.declare_queryable(keys.scene, guarded_queryable(self.scene.handle_scene, "planner"))
 
     def on_joint_state(self, sample: zenoh.Sample) -> None:
@@ -195,4 +200,7 @@ class PlannerNode(Node):
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_service("planner", argv, PlannerNode)
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--scene-file", help="keep the planning scene in this file across restarts (planner.scene_file)")
+    known, rest = pre.parse_known_args(argv)
+    return run_service("planner", rest, lambda cfg, session: PlannerNode(cfg, session, scene_file=known.scene_file))

@@ -4,7 +4,8 @@
 into the node's `CollisionWorld` (`set_objects`, `attach_object`, `detach_object`) and answers
 every request with the whole scene and a revision counter. It takes the node's planning lock
 for every change, so a plan never sees a half-applied request, and a request either applies
-completely or not at all.
+completely or not at all. With a `SceneFile`, every change is saved and the scene (and its
+revision) is loaded back at start: a restarted planner has the objects it had.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.joint_order import reorder_to_robot
 from robonav.pipeline.wire.messages import SceneObjectSpec, SceneRequest, SceneResponse
 from robonav.services.common import decode_request, reply_ok
+from robonav.services.planner.scene_file import SceneFile, scene_requests
 from robonav.services.planner.scene_specs import checked, invalid_request, object_state, scene_object
 
 log = logging.getLogger("robonav.planner.scene")
@@ -42,6 +44,7 @@ class PlanningScene:
         *,
         current_q: Callable[[], FloatArray] | None = None,
         initial_objects: Sequence[SceneObject] = (),
+        scene_file: SceneFile | None = None,
     ) -> None:
         """Take over the world's primitive objects.
 
@@ -52,14 +55,34 @@ class PlanningScene:
                 `ProtocolError(NO_JOINT_STATE)`); used by attach/detach of world-posed objects
                 when the request carries no `joint_positions`.
             initial_objects: World objects the scene starts with (e.g. from the config).
+            scene_file: Where the scene is saved after every change; what it holds is loaded
+                now, over `initial_objects`.
         """
         self._world = world
         self._lock = lock
         self._current_q = current_q
         self._objects: dict[str, SceneObject] = {o.name: o for o in initial_objects}
         self._revision = 0
+        self._file = scene_file
         with self._lock:
             world.set_objects(list(self._objects.values()))
+            if scene_file is not None:
+                self._restore(scene_file)
+
+    def _restore(self, scene_file: SceneFile) -> None:
+        saved = scene_file.load()
+        if saved is None:
+            return
+        revision, requests = saved
+        for request in requests:
+            try:
+                getattr(self, f"_{request.operation}")(request)
+            except ValueError as exc:  # ProtocolError is one: e.g. a link this robot config lacks
+                log.error("planning scene %s: cannot restore a saved %s (%s); left out", scene_file.path,
+                          request.operation, exc)
+        self._revision = revision
+        log.info("planning scene restored from %s: revision %d, %d world and %d attached objects", scene_file.path,
+                 revision, len(self._objects), len(self._world.attached_objects))
 
     @property
     def revision(self) -> int:
@@ -83,6 +106,9 @@ class PlanningScene:
             changed = getattr(self, f"_{request.operation}")(request)
             if changed:
                 self._revision += 1
+                if self._file is not None:
+                    self._file.save(self._revision, scene_requests(list(self._objects.values()),
+                                                                   self._world.attached_objects))
             return self._describe(request.request_id)
 
     # Each operation validates everything before it touches the world, so a rejected request changes nothing.
