@@ -106,7 +106,7 @@ def sim(sim_config: Path) -> Iterator[tuple[RobonavClient, Recorder, RobonavConf
         session.close()
     finally:
         codes = stack.close()
-    assert codes == {"sim": 0}
+    assert codes == {"sim": 0, "router": 0}
 
 
 def objects_query(client: RobonavClient, request: SimObjectsRequest) -> SimObjectsResponse | ErrorReply:
