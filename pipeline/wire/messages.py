@@ -173,8 +173,10 @@ class PerceptionStatusResponse(Message):
     published: int
     """Occupancy maps published."""
     dropped: dict[str, int]
-    """Frames not integrated, by reason: bad_message, unknown_camera, no_joint_state,
-    out_of_order, no_intrinsics, stale (replaced by a newer frame before it was processed)."""
+    """Frames not integrated, by reason: bad_message, unknown_camera, no_joint_state, future_stamp,
+    out_of_order, jumped_back, before_clear, empty, stale (replaced by a newer frame before it was
+    processed), ...; joint states not kept: joint_state_incomplete, joint_state_future_stamp,
+    joint_state_out_of_order, joint_state_jumped_back."""
     occupied_voxels: int
     stage_ms: dict[str, float]
     """Wall time per stage of the last frame [ms]."""
