@@ -80,7 +80,12 @@ class PlannerNode(Node):
         self._scene_queryable = session.declare_queryable(keys.scene, guarded_queryable(self.scene.handle_scene, "planner"))
 
     def on_joint_state(self, sample: zenoh.Sample) -> None:
+        """The default start is the latest joint state to arrive (its stamp does not matter: one
+        stamped in the future or long ago cannot hold later ones back). One lacking a planning
+        joint is dropped and counted, and the last complete one stays the default start."""
         state = JointState.from_wire(sample.payload.to_bytes())
+        if positions_by_name(state.names, state.position, self.robot.joint_names) is None:
+            raise ValueError(f"joint state lacks joints {missing_joints(state.names, self.robot.joint_names)}")
         with self._state_lock:
             self._joint_state = state
 
