@@ -17,7 +17,9 @@ SERVICE_MODULES = {
 
 COMMANDS: dict[str, tuple[str, str]] = {
     # name: (module whose `main(argv) -> int` runs it, help)
-    "up": ("robonav.services.stack.up", "run a Zenoh router and every service until Ctrl-C"),
+    "up": ("robonav.services.stack.up", "run a Zenoh router and every service until Ctrl-C, restarting any that exits"),
+    "status": ("robonav.services.stack.status", "which services are alive, their restarts and uptimes: "
+                                                "`robonav status [--json]`"),
     "demo": ("robonav.services.stack.demo", "start everything, plan and execute the demo goals, print a JSON summary"),
     "bench": ("robonav.services.bench.cli", "benchmarks: `robonav bench plan --problems DIR` (MotionBenchMaker), "
                                         "`robonav bench executor`"),

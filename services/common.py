@@ -10,6 +10,7 @@ import re
 import signal
 import socket
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
@@ -26,6 +27,13 @@ from robonav.services.keys import Keys
 
 log = logging.getLogger("robonav")
 M = TypeVar("M", bound=Message)
+
+RECONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
+"""How often a client retries its router after losing it. Zenoh's default backs off to 4 s, so a
+router that came back after a long outage was found up to 4 s late; one TCP connect a second to
+the router's address costs nothing."""
+ROUTER_WAIT_ATTEMPT_S = 1.0
+"""A service waiting for its router tries to connect for this long at a time, then checks for a stop."""
 
 
 def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
@@ -51,11 +59,47 @@ def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
     else:
         zcfg.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
         zcfg.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+        # A session that lost its router reconnects on its own (queryables, subscribers and
+        # liveliness tokens are declared again); only the retry period is ours. A Zenoh config
+        # file that sets it wins.
+        if zcfg.get_json("connect/retry") == "null":
+            zcfg.insert_json5("connect/retry", json.dumps(RECONNECT_RETRY))
     return zcfg
 
 
 def open_session(cfg: ZenohConfig) -> zenoh.Session:
+    """A session for a client: in client mode it fails at once when the router does not answer."""
     return zenoh.open(to_zenoh_config(cfg))
+
+
+def open_session_waiting(cfg: ZenohConfig, stop: threading.Event, name: str) -> zenoh.Session | None:
+    """A service's session: in client mode it waits for the router as long as it takes, as a ROS
+    node waits for its master, so start order does not matter. None when `stop` was set first.
+
+    Each attempt lasts `ROUTER_WAIT_ATTEMPT_S` (a signal is handled between attempts); the wait is
+    logged at once and then every 30 s with Zenoh's reason.
+    """
+    logged_at: float | None = None
+    while True:
+        zcfg = to_zenoh_config(cfg)
+        if cfg.mode == "client" and zcfg.get_json("connect/timeout_ms") == "null":
+            zcfg.insert_json5("connect/timeout_ms", json.dumps(int(ROUTER_WAIT_ATTEMPT_S * 1000)))
+        try:
+            session = zenoh.open(zcfg)
+        except zenoh.ZError as exc:
+            if cfg.mode != "client":
+                raise
+            now = time.monotonic()
+            if logged_at is None or now - logged_at >= 30.0:
+                logged_at = now
+                log.warning("%s: waiting for the router at %s (%s)", name, ", ".join(cfg.connect),
+                            str(exc).split(" at ")[0])
+            if stop.wait(0.1):
+                return None
+            continue
+        if logged_at is not None:
+            log.info("%s: connected to the router", name)
+        return session
 
 
 def declare_latched_publisher(session: zenoh.Session, key: str) -> zenoh.ext.AdvancedPublisher:
@@ -253,7 +297,11 @@ def run_service(name: str, argv: list[str] | None, build: Callable[[RobonavConfi
     _, cfg = loaded
     stop = stop_on_signals(signal.SIGINT, signal.SIGTERM)
     set_max_request_bytes(cfg.limits.max_request_bytes)
-    with open_session(cfg.zenoh) as session:
+    session = open_session_waiting(cfg.zenoh, stop, name)
+    if session is None:
+        log.info("%s: stopped before the router answered", name)
+        return 0
+    with session:
         node = build(cfg, session)
         keys = Keys(cfg.cell)
         # The per-instance token tells replicas of one service apart (a container's health check).

@@ -69,6 +69,32 @@ class LimitsConfig:
 
 
 @dataclass(frozen=True)
+class StackConfig:
+    """How `robonav up` supervises its processes (the router and every service)."""
+
+    restart: bool = True
+    """Restart a process that exits or is killed (systemd's `Restart=always`); false: leave it dead."""
+    restart_backoff_initial_s: float = 0.5
+    """Wait before the first restart after a healthy period [s]."""
+    restart_backoff_max_s: float = 8.0
+    """The wait doubles with every exit in a row, up to this [s]."""
+    restart_backoff_reset_s: float = 30.0
+    """A process that ran this long counts as healthy: its next restart waits the initial time again [s]."""
+    router_start_timeout_s: float = 30.0
+    """How long `robonav up` waits for its router to listen before giving up [s]."""
+
+    def __post_init__(self) -> None:
+        require(self.restart_backoff_initial_s > 0,
+                f"stack.restart_backoff_initial_s must be > 0, got {self.restart_backoff_initial_s}")
+        require(self.restart_backoff_max_s >= self.restart_backoff_initial_s,
+                f"stack.restart_backoff_max_s must be >= restart_backoff_initial_s, got {self.restart_backoff_max_s}")
+        require(self.restart_backoff_reset_s > 0,
+                f"stack.restart_backoff_reset_s must be > 0, got {self.restart_backoff_reset_s}")
+        require(self.router_start_timeout_s > 0,
+                f"stack.router_start_timeout_s must be > 0, got {self.router_start_timeout_s}")
+
+
+@dataclass(frozen=True)
 class DemoConfig:
     goals_rad: tuple[tuple[float, ...], ...] = ()
     """Joint goals visited in order by `robonav demo`."""
@@ -95,6 +121,7 @@ class RobonavConfig:
     executor: ExecutorConfig = field(default_factory=ExecutorConfig)
     demo: DemoConfig = field(default_factory=DemoConfig)
     limits: LimitsConfig = field(default_factory=LimitsConfig)
+    stack: StackConfig = field(default_factory=StackConfig)
 
     def __post_init__(self) -> None:
         require(bool(self.cell) and "/" not in self.cell and "*" not in self.cell,

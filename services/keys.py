@@ -93,6 +93,10 @@ class Keys:
     def sim_stats(self) -> str:
         return f"{self.root}/sim/stats"
 
+    @property
+    def stack_status(self) -> str:
+        return f"{self.root}/stack/status"
+
     def alive(self, service: str) -> str:
         return f"{self.root}/alive/{service}"
 

@@ -85,6 +85,13 @@ class PerceptionConfig:
     clearing_max_footprint_px: int = 6
     """Projection: at most this many pixels around a voxel's center are checked for a return
     in front of it (its footprint is half a voxel wide, up to this)."""
+    future_stamp_tolerance_s: float = 1.0
+    """A frame or joint state stamped more than this ahead of the perception service's clock is
+    dropped (`future_stamp`): accepting it would make every later sample look out of order [s]."""
+    stamp_jump_back_s: float = 1.0
+    """A camera or joint state source whose stamps go back by more than this, for
+    `STAMP_RESTART_SAMPLES` samples in a row, is taken as restarted (a driver's clock reset, a
+    replay looping) and its stamps start over; a smaller step back is out of order [s]."""
 
     def __post_init__(self) -> None:
         require(self.resolution_m > 0, f"perception.resolution_m must be > 0, got {self.resolution_m}")
@@ -113,5 +120,8 @@ class PerceptionConfig:
                 f"perception.outlier_min_neighbors must be in [0, 26], got {self.outlier_min_neighbors}")
         require(self.near_m >= 0, f"perception.near_m must be >= 0, got {self.near_m}")
         require(self.clearing_margin_m >= 0, f"perception.clearing_margin_m must be >= 0, got {self.clearing_margin_m}")
+        require(self.future_stamp_tolerance_s >= 0,
+                f"perception.future_stamp_tolerance_s must be >= 0, got {self.future_stamp_tolerance_s}")
+        require(self.stamp_jump_back_s > 0, f"perception.stamp_jump_back_s must be > 0, got {self.stamp_jump_back_s}")
         require(self.clearing_max_footprint_px >= 0,
                 f"perception.clearing_max_footprint_px must be >= 0, got {self.clearing_max_footprint_px}")

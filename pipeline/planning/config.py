@@ -58,6 +58,11 @@ class PlannerConfig:
     workers: int = 2
     """Plans the planner service runs at once, each in a collision world of its own: a long
     request holds one worker while the others answer."""
+    scene_file: str | None = None
+    """The planner service saves its planning scene (`planner/scene`) here after every change and
+    loads it at start, so a restarted planner keeps its objects; relative to the working directory.
+    None: not saved (`robonav up` then gives each stack's planner a file of its own, and
+    `robonav serve planner --scene-file FILE` overrides this)."""
 
     def __post_init__(self) -> None:
         require(self.allowed_planning_time_s > 0, f"planner.allowed_planning_time_s must be > 0, got {self.allowed_planning_time_s}")

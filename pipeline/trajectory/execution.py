@@ -129,6 +129,12 @@ class ExecutionStateMachine:
         current = self.commanded_state(now_s)
         if current is not None:
             trajectory = blend_from_state(trajectory, *current)
+        else:
+            # A motion from rest is tracked against its own setpoints only: the arm may have moved
+            # since the last motion ended (a restarted robot driver or simulator, hand guiding),
+            # and its old setpoints would trip the watchdog before the first new one is sent.
+            self._recent_q.clear()
+            self._recent_t.clear()
         self._trajectory = trajectory
         self._started_at_s = now_s
         self.revision += 1

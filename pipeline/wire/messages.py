@@ -173,8 +173,10 @@ class PerceptionStatusResponse(Message):
     published: int
     """Occupancy maps published."""
     dropped: dict[str, int]
-    """Frames not integrated, by reason: bad_message, unknown_camera, no_joint_state,
-    out_of_order, no_intrinsics, stale (replaced by a newer frame before it was processed)."""
+    """Frames not integrated, by reason: bad_message, unknown_camera, no_joint_state, future_stamp,
+    out_of_order, jumped_back, before_clear, empty, stale (replaced by a newer frame before it was
+    processed), ...; joint states not kept: joint_state_incomplete, joint_state_future_stamp,
+    joint_state_out_of_order, joint_state_jumped_back."""
     occupied_voxels: int
     stage_ms: dict[str, float]
     """Wall time per stage of the last frame [ms]."""
@@ -802,9 +804,64 @@ class SimStatsResponse(Message):
     ok: bool = True
 
 
+SERVICE_PROCESS_STATES: tuple[str, ...] = ("running", "restarting", "stopped")
+
+
+@dataclass(frozen=True)
+class StackStatusRequest(Message):
+    """`stack/status` (query) request: the processes `robonav up` supervises."""
+
+
+@dataclass(frozen=True)
+class ServiceProcessStatus(Message):
+    """One supervised process in a `stack/status` reply; travels nested, without `v`."""
+
+    name: str
+    """`router`, `sim`, `perception`, `planner`, `executor` or `view`."""
+    state: str
+    """'running'; 'restarting': exited, a restart is due in `restart_in_s`; 'stopped': exited, not restarted."""
+    alive: bool
+    """It holds its liveliness token `alive/<name>` (warm and serving); a process without a token
+    (`view`): it runs."""
+    restarts: int
+    """Restarts since `robonav up` started."""
+    pid: int | None = None
+    """Of the running process."""
+    uptime_s: float = 0.0
+    """Since the running process started [s]; 0 when none runs."""
+    alive_for_s: float = 0.0
+    """Since its liveliness token appeared [s]; 0 when not alive."""
+    last_exit_code: int | None = None
+    """Of the last process that exited: its exit status, or minus the signal that killed it (-9: SIGKILL)."""
+    last_exit_stamp: float | None = None
+    """When that exit was seen [s]."""
+    last_back_s: float | None = None
+    """From that exit to the restarted process's liveliness token: how long it was away [s]."""
+    restart_in_s: float | None = None
+    """'restarting': the restart is due in this long [s]."""
+
+    def __post_init__(self) -> None:
+        if self.state not in SERVICE_PROCESS_STATES:
+            raise ValueError(f"ServiceProcessStatus: state must be one of {SERVICE_PROCESS_STATES}, got {self.state!r}")
+
+
+@dataclass(frozen=True)
+class StackStatusResponse(Message):
+    """`stack/status` (query) success reply."""
+
+    stamp: float
+    started_stamp: float
+    """When `robonav up` started [s]."""
+    supervisor_pid: int
+    restart: bool
+    """Whether exited processes are restarted (`stack.restart`)."""
+    services: tuple[ServiceProcessStatus, ...] = ()
+    ok: bool = True
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     JointState, PointCloud, Occupancy, PlanRequest, PlanResponse, ExecuteRequest, ExecuteResponse,
     StopRequest, StopResponse, Setpoint, ExecutorStatus, ContactsRequest, ContactsResponse, ErrorReply,
     SceneRequest, SceneResponse, DepthImage, ContactEvent, SimObjectsRequest, SimObjectsResponse, SimStatsRequest,
-    SimStatsResponse,
+    SimStatsResponse, StackStatusRequest, StackStatusResponse,
 )

@@ -29,7 +29,7 @@ from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.pipeline.trajectory.trajectory import JointTrajectory
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
-from robonav.pipeline.wire.joint_order import positions_by_name, reorder_to_robot
+from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name, reorder_to_robot
 from robonav.pipeline.wire.messages import (
     ExecuteRequest,
     ExecuteResponse,
@@ -126,13 +126,18 @@ class ExecutorNode(Node):
         ]
 
     def on_joint_state(self, sample: zenoh.Sample) -> None:
+        """The latest joint state to arrive is the measurement, whatever its stamp (staleness is
+        judged by arrival, so a stamp from the future or long ago holds nothing back). One
+        lacking a planning joint is no measurement: it is counted and the watchdog goes on
+        waiting for a complete one."""
         state = JointState.from_wire(sample.payload.to_bytes())
         measured = positions_by_name(state.names, state.position, self.robot.joint_names)
+        if measured is None:
+            raise ValueError(f"joint state lacks joints {missing_joints(state.names, self.robot.joint_names)}")
         with self._lock:
             self._joint_state = state
-            if measured is not None and np.isfinite(measured).all():
-                self._measured_q = measured
-                self._measured_at_s = time.monotonic()
+            self._measured_q = measured
+            self._measured_at_s = time.monotonic()
 
     def handle_execute(self, query: zenoh.Query) -> None:
         request = decode_request(query, ExecuteRequest)

@@ -3,7 +3,9 @@
 Frames are latest-only per camera: a slow cycle drops stale frames instead of queueing them.
 Every camera updates the same map. The robot's own points are removed at the joint state
 nearest the cloud stamp. Bad frames (undecodable, unknown camera, out of order, no joint
-state, no returns) are counted by reason (`perception/status`) and logged once per reason.
+state, no returns) and joint states (incomplete, out of order) are counted by reason
+(`perception/status`) and logged once per reason. Stamps are judged by `stamps.py`: one in the
+future or a source whose clock went back never wedges a camera or the joint history.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ from robonav.services.common import (
 from robonav.services.config import RobonavConfig, perceived_world_from_camera
 from robonav.services.keys import Keys
 from robonav.services.perception.frames import camera_frame
+from robonav.services.perception.stamps import OK, RESTART, StampOrder
 from robonav.services.perception.warm_up import warm_up_perception
 
 log = logging.getLogger("robonav.perception")
@@ -59,21 +62,31 @@ MAX_JOINT_STATE_GAP_S = 0.25
 class JointHistory:
     """Recent joint states by stamp, to pose the robot as it was when a cloud was taken."""
 
-    def __init__(self, joint_names: tuple[str, ...]) -> None:
+    def __init__(self, joint_names: tuple[str, ...], *, future_tolerance_s: float = 1.0,
+                 jump_back_s: float = 1.0) -> None:
         self.joint_names = joint_names
         self._stamps: collections.deque[float] = collections.deque(maxlen=JOINT_HISTORY)
         self._positions: collections.deque[np.ndarray] = collections.deque(maxlen=JOINT_HISTORY)
+        self._order = StampOrder(future_tolerance_s, jump_back_s, allow_equal=True)
         self._lock = threading.Lock()
 
-    def add(self, state: JointState) -> None:
+    def add(self, state: JointState, now_s: float | None = None) -> str:
+        """Keep `state` if it fits the history (`stamps.py`). Returns `OK`, `RESTART` (the source's
+        stamps started over: the older history was dropped), or why it was dropped:
+        `incomplete` (it lacks a planning joint), `future_stamp`, `out_of_order`, `jumped_back`."""
         q = positions_by_name(state.names, state.position, self.joint_names)
-        if q is None:  # → a dropped sample, counted
-            raise ValueError(f"joint state lacks joints {missing_joints(state.names, self.joint_names)}")
+        if q is None:
+            return "incomplete"
         with self._lock:
-            if self._stamps and state.stamp < self._stamps[-1]:
-                return  # out of order; the history must stay sorted
+            verdict = self._order.judge(state.stamp, time.time() if now_s is None else now_s)
+            if verdict == RESTART:
+                self._stamps.clear()
+                self._positions.clear()
+            elif verdict != OK:
+                return verdict
             self._stamps.append(state.stamp)
             self._positions.append(q)
+            return verdict
 
     def nearest(self, stamp: float, *, max_gap_s: float) -> np.ndarray | None:
         """The joint positions whose stamp is nearest `stamp`, if within `max_gap_s`."""
@@ -88,7 +101,7 @@ class JointHistory:
 
 
 class Drops:
-    """Frames not integrated, counted by reason; each reason is logged once."""
+    """Frames (and joint states, `joint_state_*`) not used, counted by reason; each reason is logged once."""
 
     def __init__(self) -> None:
         self.counts: dict[str, int] = {}
@@ -99,7 +112,8 @@ class Drops:
             self.counts[reason] = self.counts.get(reason, 0) + 1
             first = self.counts[reason] == 1
         if first:
-            log.warning("dropping a frame (%s: %s); further ones of this kind are counted silently", reason, detail)
+            what = "a joint state" if reason.startswith("joint_state_") else "a frame"
+            log.warning("dropping %s (%s: %s); further ones of this kind are counted silently", what, reason, detail)
 
 
 class PerceptionNode(Node):
@@ -109,16 +123,26 @@ class PerceptionNode(Node):
         self.self_filter, self.clear_filter = perception_filters(
             self.robot.link_hull_vertices, self.robot.static_link_names, cfg.perception, cfg.robot.padding_m)
         self.map = make_occupancy_map(cfg.perception)
-        self.history = JointHistory(self.robot.joint_names)
+        self.history = JointHistory(self.robot.joint_names, future_tolerance_s=cfg.perception.future_stamp_tolerance_s,
+                                    jump_back_s=cfg.perception.stamp_jump_back_s)
         self.cameras = {cam.camera_id: cam for cam in cfg.cameras}
         self.world_from_camera = {cam.camera_id: perceived_world_from_camera(cam) for cam in cfg.cameras}
         self.frames = 0
         self.published = 0
         self.drops = Drops()
         self.last_stage_ms: dict[str, float] = {}
+        self._order = {cam.camera_id: StampOrder(cfg.perception.future_stamp_tolerance_s, cfg.perception.stamp_jump_back_s)
+                       for cam in cfg.cameras}
+        """Each camera's stamp order (`stamps.py`)."""
         self._last_stamp: dict[str, float] = {}
+        """Each camera's newest integrated frame stamp [s]."""
+        self._clock_offset_s: dict[str, float] = {}
+        """Each camera's receive time minus frame stamp at its last integrated frame [s]: its latency,
+        plus how far its clock is behind ours (a replay: hours)."""
         self._cleared_at = -np.inf
         """Wall time of the last perception/clear: frames taken before it are dropped."""
+        self._clear_cutoff: dict[str, float] = {}
+        """Per camera, the last clear in that camera's clock (for one whose clock is far from ours)."""
         self._newest_stamp = 0.0
         self._label_names: dict[int, str] = {}
         # Before any frame arrives, and before the service is alive: the first frame costs what any other does.
@@ -140,7 +164,15 @@ class PerceptionNode(Node):
         ]
 
     def on_joint_state(self, sample: zenoh.Sample) -> None:
-        self.history.add(JointState.from_wire(sample.payload.to_bytes()))
+        state = JointState.from_wire(sample.payload.to_bytes())
+        verdict = self.history.add(state)
+        if verdict == RESTART:
+            log.warning("joint state stamps went back to %.3f: the source restarted; the joint history starts over",
+                        state.stamp)
+        elif verdict != OK:
+            detail = (f"lacks joints {missing_joints(state.names, self.robot.joint_names)}" if verdict == "incomplete"
+                      else f"stamp {state.stamp:.3f}, clock {time.time():.3f}")
+            self.drops.add(f"joint_state_{verdict}", detail)
 
     def on_frame(self, sample: zenoh.Sample) -> None:
         """Keep only the newest frame of each camera: a slow cycle skips frames, never queues them."""
@@ -157,8 +189,12 @@ class PerceptionNode(Node):
             cleared = self.map.voxel_count
             self.map.clear()
             # A frame taken before now (pending, or on its way) shows the world as it was: after
-            # a scene change it would put the old objects back into the emptied map.
+            # a scene change it would put the old objects back into the emptied map. A camera whose
+            # clock is far from ours (a replay) gets the moment in its own clock.
             self._cleared_at = time.time()
+            tolerance_s = self.cfg.perception.stamp_jump_back_s
+            self._clear_cutoff = {camera: self._cleared_at - offset for camera, offset in self._clock_offset_s.items()
+                                  if abs(offset) > tolerance_s}
         reply_ok(query, PerceptionClearResponse(cleared_voxels=cleared))
         self._publish()
 
@@ -172,7 +208,7 @@ class PerceptionNode(Node):
 
     def _taken_before_clear(self, cloud: PointCloud | DepthImage) -> bool:
         """Whether the frame predates the last perception/clear (then counted as dropped)."""
-        if cloud.stamp > self._cleared_at:
+        if cloud.stamp > self._clear_cutoff.get(cloud.camera_id, self._cleared_at):
             return False
         self.drops.add("before_clear", f"camera {cloud.camera_id!r} frame taken before the last perception/clear")
         return True
@@ -189,11 +225,7 @@ class PerceptionNode(Node):
         if camera is None:
             self.drops.add("unknown_camera", f"{cloud.camera_id!r} (configured: {sorted(self.cameras)})")
             return False
-        if self._taken_before_clear(cloud):
-            return False
-        if cloud.stamp <= self._last_stamp.get(cloud.camera_id, -np.inf):
-            self.drops.add("out_of_order", f"camera {cloud.camera_id!r} stamp {cloud.stamp:.3f} is not newer than "
-                                           f"{self._last_stamp[cloud.camera_id]:.3f}")
+        if not self._in_order(cloud) or self._taken_before_clear(cloud):
             return False
         q = self.history.nearest(cloud.stamp, max_gap_s=MAX_JOINT_STATE_GAP_S)
         if q is None:
@@ -202,6 +234,7 @@ class PerceptionNode(Node):
             self.drops.add("no_joint_state", f"no joint state within {MAX_JOINT_STATE_GAP_S} s of the cloud stamp")
             return False
         self._last_stamp[cloud.camera_id] = cloud.stamp
+        self._clock_offset_s[cloud.camera_id] = time.time() - cloud.stamp
         if cloud.label_names:
             self._label_names.update(cloud.label_names)
         frame = camera_frame(cloud, camera, self.world_from_camera[cloud.camera_id], self.robot, q)
@@ -214,9 +247,31 @@ class PerceptionNode(Node):
             except FrameRejected as exc:
                 self.drops.add(exc.reason, f"camera {cloud.camera_id!r}: {exc}")
                 return False
-        self._newest_stamp = max(self._newest_stamp, cloud.stamp)
+        # The newest frame of any camera (not of all time: a camera whose clock went back moves it back).
+        self._newest_stamp = max(self._last_stamp.values())
         self.frames += 1
         return True
+
+    def _in_order(self, cloud: PointCloud | DepthImage) -> bool:
+        """The camera's stamp rules (`stamps.py`); a dropped frame is counted."""
+        order = self._order[cloud.camera_id]
+        last = order.last
+        verdict = order.judge(cloud.stamp, time.time())
+        if verdict == OK:
+            return True
+        if verdict == RESTART:
+            # A restarted camera's frames are new, whatever its clock says about the last clear.
+            log.warning("camera %r: stamps went back from %.3f to %.3f; taking it as restarted", cloud.camera_id,
+                        last, cloud.stamp)
+            self._clear_cutoff[cloud.camera_id] = -np.inf
+            return True
+        if verdict in ("out_of_order", "jumped_back") and self._taken_before_clear(cloud):
+            return False  # counted as before_clear: what it shows was cleared
+        why = {"future_stamp": f"{cloud.stamp - time.time():.3f} s ahead of this host's clock",
+               "jumped_back": f"{(last or 0.0) - cloud.stamp:.3f} s before the camera's newest frame",
+               "out_of_order": f"not newer than the camera's newest frame {last}"}.get(verdict, "")
+        self.drops.add(verdict, f"camera {cloud.camera_id!r} stamp {cloud.stamp:.3f}: {why}")
+        return False
 
     def _publish(self) -> None:
         t0 = time.perf_counter()

@@ -10,6 +10,7 @@ every worker has planned once (`warm_up.py`), so the first request costs what an
 
 from __future__ import annotations
 
+import argparse
 import logging
 import threading
 import time
@@ -42,6 +43,7 @@ from robonav.services.keys import Keys
 from robonav.services.limits import check_plan_request
 from robonav.services.planner.plan_worker import PlanWorker
 from robonav.services.planner.scene import PlanningScene
+from robonav.services.planner.scene_file import SceneFile
 from robonav.services.planner.warm_up import warm_up_worker
 from robonav.services.workers import RequestWorkers
 
@@ -57,7 +59,8 @@ STATUS_CODES = {
 
 
 class PlannerNode(Node):
-    def __init__(self, cfg: RobonavConfig, session: zenoh.Session) -> None:
+    def __init__(self, cfg: RobonavConfig, session: zenoh.Session, *, scene_file: str | None = None) -> None:
+        """Args: scene_file: where the planning scene is kept across restarts (default `planner.scene_file`)."""
         self.cfg = cfg
         self.robot = RobotModel.from_config(cfg.robot)
         # Before any planner exists: building an OMPL space already draws random numbers, and a
@@ -71,8 +74,10 @@ class PlannerNode(Node):
         self._stopping = threading.Event()
         """Set when the service stops: running plans end early (their OMPL search polls it)."""
         # The scene's world only keeps the objects (no plan runs in it, so no broad phase).
+        scene_file = scene_file or cfg.planner.scene_file
         self.scene = PlanningScene(CollisionWorld(self.robot, padding_m=cfg.robot.padding_m, broad_phase=False),
-                                   threading.Lock(), current_q=self._start_from_joint_state, limits=cfg.limits)
+                                   threading.Lock(), current_q=self._start_from_joint_state, limits=cfg.limits,
+                                   scene_file=SceneFile(scene_file) if scene_file else None)
         self.plan_workers = [PlanWorker.create(self.robot, cfg.robot.padding_m, cfg.planner)
                              for _ in range(cfg.planner.workers)]
         for worker in self.plan_workers:
@@ -91,7 +96,12 @@ class PlannerNode(Node):
         self._scene_queryable = session.declare_queryable(keys.scene, guarded_queryable(self.scene.handle_scene, "planner"))
 
     def on_joint_state(self, sample: zenoh.Sample) -> None:
+        """The default start is the latest joint state to arrive (its stamp does not matter: one
+        stamped in the future or long ago cannot hold later ones back). One lacking a planning
+        joint is dropped and counted, and the last complete one stays the default start."""
         state = JointState.from_wire(sample.payload.to_bytes())
+        if positions_by_name(state.names, state.position, self.robot.joint_names) is None:
+            raise ValueError(f"joint state lacks joints {missing_joints(state.names, self.robot.joint_names)}")
         with self._state_lock:
             self._joint_state = state
 
@@ -218,4 +228,7 @@ class PlannerNode(Node):
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_service("planner", argv, PlannerNode)
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--scene-file", help="keep the planning scene in this file across restarts (planner.scene_file)")
+    known, rest = pre.parse_known_args(argv)
+    return run_service("planner", rest, lambda cfg, session: PlannerNode(cfg, session, scene_file=known.scene_file))

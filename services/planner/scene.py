@@ -7,6 +7,8 @@ scene and a revision counter. A request either applies completely or not at all,
 scene's own lock: it never waits for a plan. Plans run in the worlds of the planner's workers,
 which take a `snapshot` of the scene (immutable objects) and `copy_scene_into` their world
 between plans: a plan in flight keeps the scene it started with, the next one sees the change.
+With a `SceneFile`, every change is saved and the scene (and its revision) is loaded back at
+start: a restarted planner has the objects it had.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from robonav.pipeline.wire.messages import SceneObjectSpec, SceneRequest, SceneR
 from robonav.services.common import decode_request, reply_ok
 from robonav.services.config import LimitsConfig
 from robonav.services.limits import check_limit, check_scene_request
+from robonav.services.planner.scene_file import SceneFile, scene_requests
 from robonav.services.planner.scene_specs import checked, invalid_request, object_state, scene_object
 
 log = logging.getLogger("robonav.planner.scene")
@@ -69,6 +72,7 @@ class PlanningScene:
         current_q: Callable[[], FloatArray] | None = None,
         initial_objects: Sequence[SceneObject] = (),
         limits: LimitsConfig | None = None,
+        scene_file: SceneFile | None = None,
     ) -> None:
         """Take over the world's primitive objects.
 
@@ -81,6 +85,8 @@ class PlanningScene:
                 when the request carries no `joint_positions`.
             initial_objects: World objects the scene starts with (e.g. from the config).
             limits: Request and scene size limits (default: the config's defaults).
+            scene_file: Where the scene is saved after every change; what it holds is loaded
+                now, over `initial_objects`.
         """
         self._world = world
         self._lock = lock
@@ -88,8 +94,26 @@ class PlanningScene:
         self._limits = limits or LimitsConfig()
         self._objects: dict[str, SceneObject] = {o.name: o for o in initial_objects}
         self._revision = 0
+        self._file = scene_file
         with self._lock:
             world.set_objects(list(self._objects.values()))
+            if scene_file is not None:
+                self._restore(scene_file)
+
+    def _restore(self, scene_file: SceneFile) -> None:
+        saved = scene_file.load()
+        if saved is None:
+            return
+        revision, requests = saved
+        for request in requests:
+            try:
+                getattr(self, f"_{request.operation}")(request)
+            except ValueError as exc:  # ProtocolError is one: e.g. a link this robot config lacks
+                log.error("planning scene %s: cannot restore a saved %s (%s); left out", scene_file.path,
+                          request.operation, exc)
+        self._revision = revision
+        log.info("planning scene restored from %s: revision %d, %d world and %d attached objects", scene_file.path,
+                 revision, len(self._objects), len(self._world.attached_objects))
 
     @property
     def revision(self) -> int:
@@ -119,6 +143,9 @@ class PlanningScene:
             changed = getattr(self, f"_{request.operation}")(request)
             if changed:
                 self._revision += 1
+                if self._file is not None:
+                    self._file.save(self._revision, scene_requests(list(self._objects.values()),
+                                                                   self._world.attached_objects))
             return self._describe(request.request_id)
 
     # Each operation validates everything before it touches the world, so a rejected request changes nothing.

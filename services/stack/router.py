@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import logging
 import signal
 
@@ -33,16 +34,20 @@ def main(argv: list[str] | None = None) -> int:
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--listen", action="append", metavar="ENDPOINT",
                      help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 or tls/0.0.0.0:7447 (repeatable)")
+    pre.add_argument("--id", metavar="HEX", help="the router's Zenoh id (as zenohd --id); default: random")
     known, rest = pre.parse_known_args(argv)
     loaded = parse_args_and_config("robonav router", "Run a Zenoh router for the robonav services until Ctrl-C. "
-                                   "Also: --listen ENDPOINT (repeatable).", rest)
+                                   "Also: --listen ENDPOINT (repeatable), --id HEX.", rest)
     if loaded is None:
         return 2
     _, cfg = loaded
     zcfg = router_zenoh_config(cfg, known.listen)
     stop = stop_on_signals(signal.SIGINT, signal.SIGTERM)
     try:
-        session = zenoh.open(to_zenoh_config(zcfg))
+        native = to_zenoh_config(zcfg)
+        if known.id is not None:
+            native.insert_json5("id", json.dumps(known.id))
+        session = zenoh.open(native)
     except zenoh.ZError as exc:  # e.g. the port is taken or a certificate cannot be read
         log.error("router: cannot start listening on %s: %s", ", ".join(zcfg.listen), exc)
         return 1

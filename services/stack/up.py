@@ -1,8 +1,11 @@
-"""`robonav up`: an in-process Zenoh router plus every service as its own process.
+"""`robonav up`: a Zenoh router and every service, each its own supervised process.
 
 Each service gets its own process so the 1 kHz executor loop does not share a GIL with
-rendering, ray casting or planning. Each runs in a session of its own, so a Ctrl-C in the
-terminal reaches only the command that started them: it stops the arm and waits for rest
+rendering, ray casting or planning. The router is a process too (`robonav router`), so it can
+die and come back like the others: services and clients reconnect on their own. `Stack` restarts
+whatever exits (`supervisor.py`) and answers `stack/status` with each process's state, restart
+count and uptime (`robonav status`). Each process runs in a session of its own, so a Ctrl-C in
+the terminal reaches only the command that started them: it stops the arm and waits for rest
 (`robonav demo`, `robonav campaign`) before `close` stops the services in turn.
 """
 
@@ -10,9 +13,12 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import secrets
+import shutil
 import signal
-import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Sequence
@@ -20,56 +26,146 @@ from pathlib import Path
 
 import zenoh
 
-from robonav.services.common import parse_args_and_config, stop_on_signals, to_zenoh_config
+from robonav.pipeline.wire.messages import StackStatusRequest, StackStatusResponse
+from robonav.services.common import (
+    decode_request,
+    guarded_queryable,
+    open_session,
+    parse_args_and_config,
+    reply_ok,
+    stop_on_signals,
+)
 from robonav.services.config import RobonavConfig, ZenohConfig
-from robonav.services.keys import SERVICES
+from robonav.services.keys import SERVICES, Keys
+from robonav.services.stack.supervisor import Supervisor
 
 log = logging.getLogger("robonav.up")
 
 SHUTDOWN_GRACE_S = 10.0
+ROUTER = "router"
+SCENE_FILE_NAME = "planning_scene.msgpack"
 
 
 class Stack:
-    """The router session and the service processes; `close` stops them by their PIDs."""
+    """The router and the service processes, supervised; `close` stops them by their PIDs.
+
+    Args:
+        restart: restart processes that exit (`robonav up` passes `stack.restart`); off, an
+            exited process stays dead and `dead()` names it.
+
+    Raises:
+        RuntimeError: the router did not start listening within `stack.router_start_timeout_s`.
+    """
 
     def __init__(self, cfg: RobonavConfig, config_path: str | None, *, services: Sequence[str] = SERVICES,
-                 log_level: str = "INFO", view_port: int | None = None) -> None:
+                 log_level: str = "INFO", view_port: int | None = None, restart: bool = False) -> None:
         self.cfg = cfg
-        router_cfg = ZenohConfig(mode="router", listen=cfg.zenoh.connect[:1], multicast_scouting=False)
-        self.router = zenoh.open(to_zenoh_config(router_cfg))
-        self.processes: dict[str, subprocess.Popen[bytes]] = {}
-        for name in services:
-            cmd = [sys.executable, "-m", "robonav.services.cli", "serve", name, "--log-level", log_level]
-            if config_path is not None:
-                cmd += ["--config", str(Path(config_path).resolve())]
-            self.processes[name] = subprocess.Popen(cmd, start_new_session=True)
-            log.info("started %s (pid %d)", name, self.processes[name].pid)
-        if view_port is not None:  # `robonav view`, in its own process like a service
-            cmd = [sys.executable, "-m", "robonav.services.cli", "view", "--port", str(view_port), "--log-level", log_level]
-            if config_path is not None:
-                cmd += ["--config", str(Path(config_path).resolve())]
-            self.processes["view"] = subprocess.Popen(cmd, start_new_session=True)
-            log.info("started view on port %d (pid %d)", view_port, self.processes["view"].pid)
+        self.keys = Keys(cfg.cell)
+        self.supervisor = Supervisor(cfg.stack, restart=restart)
+        self._config_args = ["--config", str(Path(config_path).resolve())] if config_path is not None else []
+        self._log_level = log_level
+        # Lives as long as the stack: a planner restarted within it reloads its scene from here; a new
+        # stack starts with an empty scene, as a new move_group does.
+        self.run_dir = Path(tempfile.mkdtemp(prefix="robonav-up-"))
+        self.session: zenoh.Session | None = None
+        self._entities: list = []
+        self._router_zid = ""
+        try:
+            self.supervisor.add(ROUTER, self._router_command)
+            self.session = self._connect_to_router()
+            self._entities = [
+                self.session.liveliness().declare_subscriber(self.keys.all_alive, self._on_token, history=True),
+                self.session.declare_queryable(self.keys.stack_status, guarded_queryable(self._handle_status, "up")),
+            ]
+            for name in services:
+                self.supervisor.add(name, self._service_command(name))
+            if view_port is not None:  # `robonav view`, in its own process like a service
+                self.supervisor.add("view", lambda: [sys.executable, "-m", "robonav.services.cli", "view", "--port",
+                                                     str(view_port), "--log-level", log_level, *self._config_args],
+                                    has_token=False)
+        except BaseException:
+            self.close()
+            raise
+        self.supervisor.run_in_background()
+
+    # --- commands ------------------------------------------------------------------------------
+
+    def _router_command(self) -> list[str]:
+        # A fresh Zenoh id on every start, like any router; the first one tells us we reached ours.
+        self._router_zid = format(secrets.randbits(120) | 1 << 120, "x")  # Zenoh ids have no leading zeros
+        return [sys.executable, "-m", "robonav.services.cli", "router", "--listen", self.cfg.zenoh.connect[0],
+                "--id", self._router_zid, "--log-level", self._log_level, *self._config_args]
+
+    def _service_command(self, name: str):  # noqa: ANN202 - a command factory
+        def command() -> list[str]:
+            cmd = [sys.executable, "-m", "robonav.services.cli", "serve", name, "--log-level", self._log_level,
+                   *self._config_args]
+            if name == "planner" and self.cfg.planner.scene_file is None:
+                cmd += ["--scene-file", str(self.run_dir / SCENE_FILE_NAME)]
+            return cmd
+
+        return command
+
+    def _connect_to_router(self) -> zenoh.Session:
+        """Our own client session, once our router listens (not some other router on the port)."""
+        deadline = time.monotonic() + self.cfg.stack.router_start_timeout_s
+        zcfg = ZenohConfig(mode="client", connect=self.cfg.zenoh.connect[:1], config_file=self.cfg.zenoh.config_file)
+        while True:
+            dead = self.supervisor.dead()
+            if ROUTER in dead:
+                raise RuntimeError(f"the router exited ({dead[ROUTER]}) before it listened on {zcfg.connect[0]}: "
+                                   "is the port taken? (see its log above)")
+            try:
+                session = open_session(zcfg)
+            except zenoh.ZError:
+                session = None
+            if session is not None:
+                if self._router_zid in {str(z) for z in session.info.routers_zid()}:
+                    return session
+                session.close()  # another router holds the port; ours will fail and exit
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the router did not listen on {zcfg.connect[0]} within "
+                                   f"{self.cfg.stack.router_start_timeout_s:.0f} s")
+            time.sleep(0.1)
+
+    # --- Zenoh ----------------------------------------------------------------------------------
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        self.supervisor.token(name, sample.kind == zenoh.SampleKind.PUT)
+
+    def _handle_status(self, query: zenoh.Query) -> None:
+        decode_request(query, StackStatusRequest)
+        reply_ok(query, self.status())
+
+    # --- API ------------------------------------------------------------------------------------
+
+    def status(self) -> StackStatusResponse:
+        """What `stack/status` answers: every process's state, restarts, uptime."""
+        return StackStatusResponse(stamp=time.time(), started_stamp=self.supervisor.started_stamp,
+                                   supervisor_pid=os.getpid(), restart=self.supervisor.restart,
+                                   services=tuple(self.supervisor.status()))
+
+    def pid(self, name: str) -> int | None:
+        """The running process of `name` (e.g. to kill it in a test), if any."""
+        return self.supervisor.pid(name)
 
     def dead(self) -> dict[str, int]:
-        """Services that exited, with their exit codes."""
-        return {name: proc.returncode for name, proc in self.processes.items() if proc.poll() is not None}
+        """Processes not running now, with their exit codes (with restarts on, until they are restarted)."""
+        return self.supervisor.dead()
 
     def close(self) -> dict[str, int]:
-        """SIGINT every service, wait, SIGKILL stragglers; returns exit codes."""
-        for proc in self.processes.values():
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + SHUTDOWN_GRACE_S
-        codes: dict[str, int] = {}
-        for name, proc in self.processes.items():
-            try:
-                codes[name] = proc.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                log.error("%s did not stop within %.0f s; killing pid %d", name, SHUTDOWN_GRACE_S, proc.pid)
-                proc.kill()
-                codes[name] = proc.wait()
-        self.router.close()
+        """SIGINT every service, then the router, wait, SIGKILL stragglers; returns exit codes."""
+        others = [name for name in self.supervisor.names if name != ROUTER]
+        codes = self.supervisor.stop([others], SHUTDOWN_GRACE_S)
+        for entity in self._entities:
+            entity.undeclare()
+        self._entities = []
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+        codes.update(self.supervisor.stop([[ROUTER]], SHUTDOWN_GRACE_S))
+        shutil.rmtree(self.run_dir, ignore_errors=True)
         return codes
 
 
@@ -78,26 +174,34 @@ def main(argv: list[str] | None = None) -> int:
     view_parser.add_argument("--view", action="store_true")
     view_parser.add_argument("--view-port", type=int, default=8080)
     view_args, argv = view_parser.parse_known_args(argv)
-    loaded = parse_args_and_config("robonav up", "Run a Zenoh router and every service until Ctrl-C "
-                                   "(--view: also `robonav view` on --view-port, default 8080).", argv)
+    loaded = parse_args_and_config("robonav up", "Run a Zenoh router and every service until Ctrl-C, restarting "
+                                   "any that exits (--view: also `robonav view` on --view-port, default 8080).", argv)
     if loaded is None:
         return 2
     args, cfg = loaded
     stop = stop_on_signals(signal.SIGINT, signal.SIGTERM)
-    stack = Stack(cfg, args.config, log_level=args.log_level, view_port=view_args.view_port if view_args.view else None)
-    failed: dict[str, int] = {}
-    watcher = threading.Thread(target=lambda: _watch(stack, stop, failed), daemon=True)
-    watcher.start()
+    try:
+        stack = Stack(cfg, args.config, log_level=args.log_level, restart=cfg.stack.restart,
+                      view_port=view_args.view_port if view_args.view else None)
+    except RuntimeError as exc:
+        log.error("%s", exc)
+        return 1
+    if not cfg.stack.restart:
+        _stop_when_one_exits(stack, stop)
     stop.wait()
     codes = stack.close()
     log.info("stopped: %s", codes)
-    return 1 if failed or any(code != 0 for code in codes.values()) else 0
+    return 1 if any(code != 0 for code in codes.values()) else 0
 
 
-def _watch(stack: Stack, stop: threading.Event, failed: dict[str, int]) -> None:
-    while not stop.wait(0.5):
-        dead = stack.dead()
-        if dead:
-            failed.update(dead)
-            log.error("service exited unexpectedly: %s; stopping the stack", dead)
-            stop.set()
+def _stop_when_one_exits(stack: Stack, stop: threading.Event) -> None:
+    """Without restarts, one exited process stops the stack (so a supervisor above sees it)."""
+
+    def watch() -> None:
+        while not stop.wait(0.5):
+            dead = stack.dead()
+            if dead:
+                log.error("exited: %s; stopping the stack", dead)
+                stop.set()
+
+    threading.Thread(target=watch, daemon=True).start()

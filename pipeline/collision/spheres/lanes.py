@@ -80,11 +80,18 @@ class LaneWorld(structref.StructRefProxy):
         missing = set(LANE_WORLD_FIELDS) ^ set(arrays)
         if missing:
             raise ValueError(f"LaneWorld fields missing or unknown: {sorted(missing)}")
-        return structref.StructRefProxy.__new__(cls, *(arrays[name] for name in LANE_WORLD_FIELDS))
+        # Built by a cached compiled function: StructRefProxy.__new__ compiles its constructor in
+        # every new process (numba cannot cache it), 3-10 s of every planner and executor start.
+        return _new_lane_world(tuple(arrays[name] for name in LANE_WORLD_FIELDS))
 
 
 structref.define_constructor(LaneWorld, LaneWorldType, list(LANE_WORLD_FIELDS))
 structref.define_boxing(LaneWorldType, LaneWorld)
+
+
+@nb.njit(cache=True)
+def _new_lane_world(fields):  # noqa: ANN001, ANN202 (a tuple of the LANE_WORLD_FIELDS arrays, in order)
+    return LaneWorld(*fields)
 
 
 @nb.njit(cache=True, inline="always")

@@ -174,3 +174,23 @@ def test_watchdog_stops_on_tracking_error() -> None:
     assert machine.check_watchdog(0.2, measured, 0.0, WATCHDOG) == ErrorCode.TRACKING_ERROR
     assert "joint 3" in machine.error_message
     assert machine.check_watchdog(0.2, None, float("inf"), WATCHDOG) is None
+
+
+def test_a_motion_from_rest_is_not_tracked_against_the_last_motions_setpoints() -> None:
+    """After a motion, the arm turns up elsewhere (a restarted sim starts at home): the next
+    execute starts where the arm is, and the previous motion's setpoints must not trip the watchdog."""
+    machine = ExecutionStateMachine(LIMITS)
+    trajectory = _trajectory()
+    machine.start(trajectory, "first", now_s=0.0)
+    _run(machine, 0.0, trajectory.duration_s + 0.01)
+    assert machine.state == "idle"
+    elsewhere = HOME + 0.5  # far from where the first motion ended
+    from_there = time_parameterize(np.array([elsewhere, HOME]), max_velocity=LIMITS.velocity,
+                                   max_acceleration=LIMITS.acceleration, max_jerk=LIMITS.jerk)
+    start_s = trajectory.duration_s + 5.0
+    machine.start(from_there, "second", now_s=start_s)
+    # The watchdog runs before the first new setpoint is sampled, and then along the motion.
+    assert machine.check_watchdog(start_s - 0.005, elsewhere, 0.0, WATCHDOG) is None
+    sample = machine.tick(start_s)
+    assert machine.check_watchdog(start_s, sample.position, 0.0, WATCHDOG) is None
+    assert machine.state == "executing"

@@ -32,11 +32,14 @@ from robonav.pipeline.wire.messages import (
     SceneObjectState,
     SceneRequest,
     SceneResponse,
+    ServiceProcessStatus,
     Setpoint,
     SimObjectsRequest,
     SimObjectsResponse,
     SimStatsRequest,
     SimStatsResponse,
+    StackStatusRequest,
+    StackStatusResponse,
     StopRequest,
     StopResponse,
     decode_reply,
@@ -104,6 +107,12 @@ EXAMPLES: list[Message] = [
     SimStatsResponse(wall_time_s=10.0, sim_time_s=9.99, real_time_factor=0.999, steps=2398, step_lateness_ms_p50=0.1,
                      step_lateness_ms_p99=4.0, step_lateness_ms_max=20.0, dropped_time_s=0.0,
                      joint_state_period_ms_max=30.0, cameras=(CameraStats("cam0", frames=50, render_ms_p50=90.0),)),
+    StackStatusRequest(),
+    StackStatusResponse(stamp=8.0, started_stamp=1.0, supervisor_pid=42, restart=True, services=(
+        ServiceProcessStatus("planner", "running", True, restarts=1, pid=43, uptime_s=3.5, alive_for_s=1.0,
+                             last_exit_code=-9, last_exit_stamp=4.0, last_back_s=2.5),
+        ServiceProcessStatus("sim", "restarting", False, restarts=2, last_exit_code=1, restart_in_s=1.0),
+    )),
 ]
 
 

@@ -109,7 +109,7 @@ def test_a_ten_scene_campaign_reports_every_field(campaign_run: tuple[int, dict,
     assert "campaign: 100%" in output  # the progress bar ran to the end
     assert "reached (of feasible)" in output  # the table
     assert code == (0 if summary["contacts"] == 0 and summary["limit_violations"] == 0 else 1)
-    assert summary["service_exit_codes"] == {"sim": 0, "perception": 0, "planner": 0, "executor": 0}
+    assert summary["service_exit_codes"] == {"router": 0, "sim": 0, "perception": 0, "planner": 0, "executor": 0}
 
 
 def test_a_ten_scene_campaign_is_safe_in_static_scenes(campaign_run: tuple[int, dict, str]) -> None:

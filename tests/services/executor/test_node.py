@@ -157,6 +157,47 @@ def test_watchdog_stops_on_stale_joint_states(executor: tuple[ExecutorNode, Robo
     assert isinstance(reply, ErrorReply) and reply.code == "NO_JOINT_STATE"
 
 
+def test_odd_joint_states_are_no_measurement_and_hold_nothing_back(executor: tuple[ExecutorNode, RobonavClient, FakeRobot]) -> None:
+    """Joint states lacking a joint or naming others are dropped; stamps from the future or from
+    1970 on the robot's own state change nothing: staleness is judged by arrival."""
+    node, client, robot = executor
+    keys = client.keys
+    odd_stop = threading.Event()
+
+    def odd_states() -> None:
+        while not odd_stop.wait(0.01):
+            q = robot.position
+            for names, position, stamp in ((NAMES[:-1], q[:-1], time.time()),
+                                           (tuple(f"other_{n}" for n in NAMES), q + 1.0, time.time()),
+                                           (NAMES, q, time.time() + 1e6), (NAMES, q, 1.0)):
+                client.session.put(keys.joint_states, JointState(stamp=stamp, names=names, position=position,
+                                                                 velocity=np.zeros(len(names))).to_wire())
+
+    thread = threading.Thread(target=odd_states, daemon=True)
+    thread.start()
+    try:
+        reply = client.execute(_path(HOME, [0.4, 0.2, 0.0, 0.3, 0.0, 0.2, 0.0], [0.0] * 7), trajectory_id="odd")
+        assert isinstance(reply, ExecuteResponse), reply
+        assert client.wait_for_trajectory("odd", reply.duration_s + 5.0) == "succeeded", client.status
+    finally:
+        odd_stop.set()
+        thread.join()
+    # Only joint states lacking a joint: no measurement, so no motion.
+    robot.publishing.clear()
+    time.sleep(0.3)
+    for _ in range(30):
+        client.session.put(keys.joint_states, JointState(stamp=time.time(), names=NAMES[:-1], position=HOME[:-1],
+                                                         velocity=np.zeros(6)).to_wire())
+        time.sleep(0.01)
+    reply = client.execute(_path(robot.position, [0.1] * 7))
+    assert isinstance(reply, ErrorReply) and reply.code == "NO_JOINT_STATE", reply
+    robot.publishing.set()
+    assert client.wait_for(lambda: node._measured_at_s > time.monotonic() - 0.1, 2.0)
+    reply = client.execute(_path(robot.position, [0.1] * 7), trajectory_id="after")
+    assert isinstance(reply, ExecuteResponse), reply
+    assert client.wait_for_trajectory("after", reply.duration_s + 5.0) == "succeeded"
+
+
 def _raw_execute(client: RobonavClient, path: np.ndarray) -> ErrorReply | ExecuteResponse:
     """An execute request encoded by hand, so shapes the Python constructor refuses can be sent."""
     payload = msgpack.unpackb(ExecuteRequest(path=HOME[None, :]).to_wire())

@@ -220,3 +220,38 @@ def _quat_xyzw(rotation: np.ndarray) -> np.ndarray:
 
     q = pin.Quaternion(rotation)
     return np.array([q.x, q.y, q.z, q.w])
+
+
+def test_odd_joint_states_never_hold_back_the_default_start(planner: tuple[PlannerNode, zenoh.Session, RobonavClient]) -> None:
+    """The default start is the latest complete joint state to arrive, whatever its stamp."""
+    node, session, client = planner
+    keys = client.keys
+    _publish_until(session, keys.occupancy, _wall_map(-0.9, time.time()).to_wire(),
+                   lambda: node._map_received_monotonic is not None)
+    names = CONFIG.robot.joint_names
+
+    def state(stamp: float, q: np.ndarray, joint_names: tuple[str, ...] = names) -> bytes:
+        return JointState(stamp=stamp, names=joint_names, position=q, velocity=np.zeros(len(q))).to_wire()
+
+    def start_of_plan() -> np.ndarray:
+        reply = client.plan(GOAL, allowed_planning_time=2.0, seed=1)
+        assert isinstance(reply, PlanResponse), reply
+        return reply.path[0]
+
+    _publish_until(session, keys.joint_states, state(time.time(), HOME), lambda: node._joint_state is not None)
+    # Incomplete ones (a joint missing, or other names) are dropped: the complete one stays the start.
+    session.put(keys.joint_states, state(time.time(), HOME[:-1] + 0.1, names[:-1]))
+    session.put(keys.joint_states, state(time.time(), HOME + 0.1, tuple(f"x_{n}" for n in names)))
+    time.sleep(0.3)
+    np.testing.assert_allclose(start_of_plan(), HOME)
+    # One stamped far in the future, then an ordinary one: the ordinary one (the latest) is the start.
+    moved = HOME + np.array([0.2, 0.0, 0.0, 0.1, 0.0, 0.0, 0.0])
+    session.put(keys.joint_states, state(time.time() + 1e6, moved))
+    time.sleep(0.2)
+    np.testing.assert_allclose(start_of_plan(), moved)
+    session.put(keys.joint_states, state(time.time(), HOME))
+    time.sleep(0.2)
+    np.testing.assert_allclose(start_of_plan(), HOME)
+    session.put(keys.joint_states, state(1.0, moved))  # stamped in 1970
+    time.sleep(0.2)
+    np.testing.assert_allclose(start_of_plan(), moved)

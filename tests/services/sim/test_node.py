@@ -106,7 +106,7 @@ def sim(sim_config: Path) -> Iterator[tuple[RobonavClient, Recorder, RobonavConf
         session.close()
     finally:
         codes = stack.close()
-    assert codes == {"sim": 0}
+    assert codes == {"sim": 0, "router": 0}
 
 
 def objects_query(client: RobonavClient, request: SimObjectsRequest) -> SimObjectsResponse | ErrorReply:
@@ -250,6 +250,45 @@ def test_driving_the_arm_into_a_box_is_a_contact_event(sim: tuple[RobonavClient,
     assert begin.distance_m <= 0.0 and begin.link.startswith("panda_") and begin.contact_count >= 1
     stream_setpoints(client, cfg, lambda t: into_wall + (home - into_wall) * min(t / 1.0, 1.0), 1.5)
     assert recorder.wait_for(lambda: any(e.event == "end" for e in recorder.events))
+
+
+def test_odd_setpoints_are_ignored_and_stamps_never_hold_the_arm_back(sim: tuple[RobonavClient, Recorder, RobonavConfig]) -> None:
+    """Setpoints naming other joints, or too few, are dropped; the latest good one is followed
+    whatever its stamp (the sim does not order setpoints by stamp)."""
+    client, recorder, cfg = sim
+    home = np.array(cfg.robot.home_position_rad)
+    away = home + np.array([-0.3, 0.0, 0.0, 0.2, 0.0, 0.0, 0.0])
+    names = tuple(cfg.robot.joint_names)
+
+    def stream(q_of_t: Callable[[float], np.ndarray], duration_s: float, *, stamp_offset_s: float = 0.0,
+               joint_names: tuple[str, ...] = names, stamp: float | None = None) -> None:
+        start = time.monotonic()
+        while (t := time.monotonic() - start) < duration_s:
+            q = q_of_t(t)[:len(joint_names)]
+            client.session.put(client.keys.setpoint, Setpoint(
+                stamp=time.time() + stamp_offset_s if stamp is None else stamp, trajectory_id="odd", names=joint_names,
+                position=q, velocity=np.zeros(len(q)), acceleration=np.zeros(len(q))).to_wire())
+            time.sleep(0.01)
+
+    def arm_at(q: np.ndarray) -> bool:
+        return recorder.wait_for(lambda: bool(recorder.joint_states)
+                                 and np.max(np.abs(recorder.joint_states[-1].position - q)) < 1e-3, 5.0)
+
+    stream(lambda t: home, 0.3)
+    assert arm_at(home)
+    towards_away = lambda t: home + (away - home) * min(t / 0.5, 1.0)  # noqa: E731
+    stream(towards_away, 0.7, joint_names=tuple(f"other_{n}" for n in names))
+    stream(towards_away, 0.7, joint_names=names[:-1])
+    time.sleep(0.2)
+    assert arm_at(home), "the sim followed setpoints for joints it does not have"
+    stream(towards_away, 0.7, stamp_offset_s=1e6)  # stamped far in the future
+    assert arm_at(away)
+    stream(lambda t: away + (home - away) * min(t / 0.5, 1.0), 0.7)  # then ordinary stamps
+    assert arm_at(home)
+    stream(towards_away, 0.7, stamp=1.0)  # stamped in 1970
+    assert arm_at(away)
+    stream(lambda t: away + (home - away) * min(t / 0.5, 1.0), 0.7)
+    assert arm_at(home)
 
 
 def test_stats_report_physics_timing_and_frames(sim: tuple[RobonavClient, Recorder, RobonavConfig]) -> None:

@@ -102,7 +102,7 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Scene]:
     scene = Scene(load_config(config_path), config_path)
     yield scene
     codes = scene.close()
-    assert codes == {"view": 0}, f"robonav view did not stop cleanly: {codes}"
+    assert codes == {"view": 0, "router": 0}, f"robonav view did not stop cleanly: {codes}"
 
 
 def project(points_m: np.ndarray, width: int, height: int) -> np.ndarray:
