@@ -95,7 +95,7 @@ def run(config_path: Path, chosen: list[str], victims: list[str], args: argparse
                         report["error"] = f"services not alive: {sorted(missing)}"
                     else:
                         sections.first_plan(client, goals[0], seed=args.seed, timeout_s=sections.READY_TIMEOUT_S)
-                        _run_sections(stack, client, rest, victims, goals, args, report)
+                        _run_sections(stack, client, rest, victims, goals, args, report, logs)
                 finally:
                     client.close()
         finally:
@@ -107,7 +107,7 @@ def run(config_path: Path, chosen: list[str], victims: list[str], args: argparse
 
 
 def _run_sections(stack: LiveStack, client: RobonavClient, chosen: list[str], victims: list[str],
-                  goals: list[np.ndarray], args: argparse.Namespace, report: dict[str, Any]) -> None:
+                  goals: list[np.ndarray], args: argparse.Namespace, report: dict[str, Any], logs: Path) -> None:
     seed = args.seed
     steps: dict[str, Any] = {
         "long_request": lambda: sections.long_request(client, goals[0], goals[1], seed=seed,
@@ -116,7 +116,7 @@ def _run_sections(stack: LiveStack, client: RobonavClient, chosen: list[str], vi
         "kill": lambda: {name: _guarded(lambda name=name, k=k: sections.kill(
             stack, client, name, goals[k % len(goals):] + goals[:k % len(goals)], seed=seed + 10 * k))
             for k, name in enumerate(victims)},
-        "safety": lambda: safety(stack, client, goals, seed=seed),
+        "safety": lambda: safety(stack, client, goals, seed=seed, logs=logs),
         "fuzz": lambda: sections.fuzz(stack, client, args.fuzz, seed=seed),
     }
     for name in SECTIONS:
@@ -132,7 +132,7 @@ def _guarded(section: Any) -> dict[str, Any]:  # noqa: ANN401 - a zero-argument 
         return {"error": f"{type(exc).__name__}: {exc}"}
 
 
-def safety(stack: LiveStack, client: RobonavClient, goals: list[np.ndarray], *, seed: int) -> dict[str, Any]:
+def safety(stack: LiveStack, client: RobonavClient, goals: list[np.ndarray], *, seed: int, logs: Path) -> dict[str, Any]:
     """A straight path through an obstacle sent to the executor (with and without the map stamp),
     and setpoints beyond the limits on the bus."""
     cfg = stack.cfg
@@ -160,9 +160,11 @@ def safety(stack: LiveStack, client: RobonavClient, goals: list[np.ndarray], *, 
             sections.plan_and_execute(client, start, seed=seed)
     contacts_after = sections._contacts(client)
     setpoints = sections.bad_setpoints(client, tuple(cfg.robot.joint_names), robot.upper_limits_rad)
+    roles = sections.forged(logs)
     return {"unsafe_execute_tried": attempts, "unsafe_execute_refused": refused,
             "contacts": None if contacts_before is None or contacts_after is None else contacts_after - contacts_before,
-            "bad_setpoints_injected": setpoints["injected"], "bad_setpoints_followed": setpoints["followed"]}
+            "bad_setpoints_injected": setpoints["injected"], "bad_setpoints_followed": setpoints["followed"],
+            "forged_tried": roles.get("forged_tried"), "forged_delivered": roles.get("forged_delivered"), "roles": roles}
 
 
 def targets(report: dict[str, Any]) -> dict[str, bool]:
@@ -191,5 +193,6 @@ def targets(report: dict[str, Any]) -> dict[str, bool]:
     s = report.get("safety")
     if s is not None:
         out["safety"] = ("error" not in s and s["unsafe_execute_refused"] == s["unsafe_execute_tried"] > 0
-                         and s["contacts"] == 0 and s["bad_setpoints_followed"] == 0)
+                         and s["contacts"] == 0 and s["bad_setpoints_followed"] == 0
+                         and s.get("forged_delivered") in (0, None))
     return out

@@ -3,6 +3,10 @@ measures how it comes out of it. Every function returns a JSON-ready dict."""
 
 from __future__ import annotations
 
+import shutil
+import socket
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -11,13 +15,15 @@ from typing import Any
 
 import numpy as np
 
+import robonav.configs
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.messages import ErrorReply, PlanRequest, PlanResponse, PointCloud, Setpoint
 from robonav.services.bench.faults.fuzz import run_fuzz, seed_messages
-from robonav.services.bench.faults.stack import LiveStack, plan_and_execute, wait_at_rest
+from robonav.services.bench.faults.stack import LiveStack, free_port, plan_and_execute, wait_at_rest, write_campaign_config
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.keys import SERVICES
+from robonav.services.stack.roles import forged_delivered, logins, probe_roles
 
 ALIVE_TIMEOUT_S = 120.0
 READY_TIMEOUT_S = 90.0
@@ -52,8 +58,7 @@ def first_plan(client: RobonavClient, goal_rad: np.ndarray, *, seed: int, timeou
 def cold_start(config_path: Path, goal_rad: np.ndarray, *, seed: int, log_dir: Path) -> dict[str, Any]:
     """`robonav up` with an empty compile cache: when are all services alive, and the first plan?"""
     with tempfile.TemporaryDirectory(prefix="robonav-cold-cache-") as cache:
-        stack = LiveStack(config_path, env={"NUMBA_CACHE_DIR": cache, "ROBONAV_NUMBA_CACHE_DIR": cache},
-                          log_path=log_dir / "cold_start.log")
+        stack = LiveStack(config_path, env={"NUMBA_CACHE_DIR": cache}, log_path=log_dir / "cold_start.log")
         try:
             with stack.connect() as session:
                 client = RobonavClient(session, stack.cfg.cell)
@@ -219,3 +224,35 @@ def _contacts(client: RobonavClient) -> int | None:
     except (QueryFailed, ProtocolError):
         return None
     return None if isinstance(reply, ErrorReply) else reply.contact_count
+
+
+def forged(log_dir: Path) -> dict[str, Any]:
+    """Every role of a secured cell (fresh passwords and certificates from `setup_cell.sh`, the
+    router's access control from `router-acl.json5`) tries every publication, request,
+    impersonation and liveliness token outside its role: how many got through?"""
+    scripts = Path(robonav.configs.__file__).parent / "security"
+    if not (scripts / "setup_cell.sh").is_file() or shutil.which("openssl") is None:
+        return {"skipped": "needs configs/security/setup_cell.sh and openssl"}
+    with tempfile.TemporaryDirectory(prefix="robonav-cell-") as cell:
+        subprocess.run(["bash", str(scripts / "setup_cell.sh"), cell], check=True, capture_output=True)
+        port = free_port()
+        router_dir = Path(cell) / "router"
+        config = write_campaign_config(None, router_dir, seed=0)
+        with (log_dir / "forged_router.log").open("ab") as log:
+            router = subprocess.Popen([sys.executable, "-m", "robonav.services.cli", "router", "--config", str(config),
+                                       "--zenoh-config", "router-acl.json5", "--listen", f"tls/127.0.0.1:{port}",
+                                       "--log-level", "WARNING"], cwd=router_dir, stdout=log, stderr=log)
+            try:
+                deadline = time.monotonic() + 30.0
+                while time.monotonic() < deadline and router.poll() is None:
+                    with socket.socket() as s:
+                        if s.connect_ex(("127.0.0.1", port)) == 0:
+                            break
+                    time.sleep(0.1)
+                results = probe_roles(logins(cell, f"tls/localhost:{port}"))
+            finally:
+                router.terminate()
+                router.wait(timeout=15)
+    tried = sum(r.puts_forbidden + r.queries_forbidden + r.impersonations_tried + r.tokens_forged for r in results.values())
+    return {"forged_tried": tried, "forged_delivered": forged_delivered(results),
+            "leaks": [leak for r in results.values() for leak in r.leaks][:10]}
