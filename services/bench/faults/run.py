@@ -114,7 +114,7 @@ def _run_sections(stack: LiveStack, client: RobonavClient, chosen: list[str], vi
                                                       planning_time_s=args.long_request_s),
         "overload": lambda: sections.overload(stack, client, seconds=args.overload_s),
         "kill": lambda: {name: _guarded(lambda name=name, k=k: sections.kill(
-            stack, client, name, goals[k % len(goals):] + goals[:k % len(goals)], seed=seed + 10 * k))
+            stack, client, name, goals, seed=seed + 10 * k))
             for k, name in enumerate(victims)},
         "safety": lambda: safety(stack, client, goals, seed=seed, logs=logs),
         "fuzz": lambda: sections.fuzz(stack, client, args.fuzz, seed=seed),

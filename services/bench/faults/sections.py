@@ -109,9 +109,12 @@ def long_request(client: RobonavClient, goal_rad: np.ndarray, other_goal_rad: np
             "plan_after_ok": ok_after}
 
 
-def overload(stack: LiveStack, client: RobonavClient, *, seconds: float, factor: float = 2.0) -> dict[str, Any]:
-    """Clouds at `factor` times the camera rate (the sim's own plus copies of them) for `seconds`:
-    memory growth per service, and whether maps kept coming."""
+def overload(stack: LiveStack, client: RobonavClient, *, seconds: float, factor: float = 2.0,
+             settle_s: float = 10.0) -> dict[str, Any]:
+    """Clouds at `factor` times the camera rate (the sim's own plus copies of them): memory growth per
+    service over `seconds`, measured from `settle_s` after the extra clouds started (the buffers a
+    doubled rate needs are allocated then; what grows after that is what a long overload would
+    exhaust), and whether maps kept coming."""
     camera = stack.cfg.cameras[0]
     latest: dict[str, PointCloud] = {}
     maps = {"count": 0}
@@ -125,12 +128,15 @@ def overload(stack: LiveStack, client: RobonavClient, *, seconds: float, factor:
     cloud_sub = client.session.declare_subscriber(client.keys.camera_cloud(camera.camera_id), on_cloud)
     map_sub = client.session.declare_subscriber(client.keys.occupancy, lambda _s: maps.__setitem__("count", maps["count"] + 1))
     time.sleep(2.0)
-    before = stack.rss_bytes()
+    at_start = stack.rss_bytes()
     period_s = 1.0 / (camera.rate_hz * (factor - 1.0))
     sent = 0
     started = time.monotonic()
-    maps_at_start = maps["count"]
-    while time.monotonic() - started < seconds:
+    before: dict[str, int] | None = None
+    maps_at_start = 0
+    while time.monotonic() - started < settle_s + seconds:
+        if before is None and time.monotonic() - started >= settle_s:
+            before, maps_at_start = stack.rss_bytes(), maps["count"]
         cloud = latest.get("cloud")
         if cloud is not None:
             copy = PointCloud(stamp=time.time(), camera_id=cloud.camera_id, points=cloud.points, seq=10_000_000 + sent,
@@ -142,8 +148,13 @@ def overload(stack: LiveStack, client: RobonavClient, *, seconds: float, factor:
     after = stack.rss_bytes()
     cloud_sub.undeclare()
     map_sub.undeclare()
-    growth = {name: round(100.0 * (after.get(name, 0) - rss) / rss, 1) for name, rss in before.items() if rss > 0}
-    return {"seconds": seconds, "extra_clouds": sent, "maps_published": maps_during, "rss_growth_pct": growth,
+    before = before or at_start
+
+    def growth(base: dict[str, int]) -> dict[str, float]:
+        return {name: round(100.0 * (after.get(name, 0) - rss) / rss, 1) for name, rss in base.items() if rss > 0}
+
+    return {"seconds": seconds, "settle_s": settle_s, "extra_clouds": sent, "maps_published": maps_during,
+            "rss_growth_pct": growth(before), "rss_growth_from_idle_pct": growth(at_start),
             "rss_mb_after": {name: round(v / 2**20, 1) for name, v in after.items()}}
 
 
@@ -151,7 +162,10 @@ def kill(stack: LiveStack, client: RobonavClient, name: str, goals: list[np.ndar
     """SIGKILL service `name` while the arm moves; time the restart and the arm coming to rest,
     count contacts, then plan and execute to the next goal."""
     contacts_before = _contacts(client)
-    goal, next_goal = goals[0], goals[1]
+    # The goal farthest from where the arm is, so it surely moves when the service dies.
+    here = client.joint_state.position if client.joint_state is not None else goals[0]
+    order = sorted(goals, key=lambda g: -float(np.max(np.abs(g - here))))
+    goal, next_goal = order[0], order[1]
     motion = plan_and_execute(client, goal, seed=seed, wait=False)
     moving = motion["ok"] and client.wait_for(
         lambda: client.joint_state is not None and float(np.max(np.abs(client.joint_state.velocity))) > 0.05, 5.0)
