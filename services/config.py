@@ -42,9 +42,14 @@ class ZenohConfig:
 class LimitsConfig:
     max_request_bytes: int = 16 * 1024 * 1024
     """Query payloads larger than this are refused with PAYLOAD_TOO_LARGE [bytes]."""
+    max_publication_bytes: int = 64 * 1024 * 1024
+    """Published samples larger than this are dropped (and counted) by every subscribing
+    service before decoding [bytes]; a 1280x720 cloud is about 11 MB."""
 
     def __post_init__(self) -> None:
         require(self.max_request_bytes > 0, f"limits.max_request_bytes must be > 0, got {self.max_request_bytes}")
+        require(self.max_publication_bytes > 0,
+                f"limits.max_publication_bytes must be > 0, got {self.max_publication_bytes}")
 
 
 @dataclass(frozen=True)

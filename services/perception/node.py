@@ -22,6 +22,7 @@ from robonav.pipeline.perception.maps.factory import make_occupancy_map
 from robonav.pipeline.perception.maps.protocol import CameraFrame, FrameRejected
 from robonav.pipeline.perception.self_filter import perception_filters
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name
 from robonav.pipeline.wire.messages import (
     Clusters,
@@ -36,6 +37,7 @@ from robonav.pipeline.wire.messages import (
 )
 from robonav.services.common import (
     Node,
+    check_publication_size,
     declare_latched_publisher,
     decode_request,
     guarded_queryable,
@@ -141,6 +143,11 @@ class PerceptionNode(Node):
     def on_frame(self, sample: zenoh.Sample) -> None:
         """Keep only the newest frame of each camera: a slow cycle skips frames, never queues them."""
         key = str(sample.key_expr)
+        try:
+            check_publication_size(sample)
+        except ProtocolError as exc:
+            self.drops.add("too_large", exc.message)
+            return
         with self._pending_lock:
             if key in self._pending:
                 self.drops.add("stale", f"a newer frame replaced an unprocessed one on {key}")
