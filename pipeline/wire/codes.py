@@ -28,6 +28,9 @@ class ErrorCode(str, enum.Enum):
     """No start given and no joint state received yet."""
     OCCUPANCY_MISSING = "OCCUPANCY_MISSING"
     OCCUPANCY_STALE = "OCCUPANCY_STALE"
+    OCCUPANCY_INCOMPLETE = "OCCUPANCY_INCOMPLETE"
+    """The map is being rebuilt after a clear or a perception start: a camera has not yet
+    contributed the configured number of frames."""
     EXECUTOR_BUSY = "EXECUTOR_BUSY"
     """An execute request arrived while a trajectory is streaming or stopping."""
     INTERNAL_ERROR = "INTERNAL_ERROR"

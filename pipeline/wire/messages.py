@@ -124,6 +124,13 @@ class Occupancy(Message):
     """(N, 3) centers of occupied voxels before inflation [m]."""
     seq: int = 0
     frame_id: str = "world"
+    camera_frames: dict[str, int] | None = None
+    """Camera id -> frames integrated since the last clear or perception start, for every
+    configured camera (0 for one not heard from); absent from older producers."""
+
+    def __post_init__(self) -> None:
+        if self.camera_frames is not None and any(n < 0 for n in self.camera_frames.values()):
+            raise ValueError(f"Occupancy: camera_frames must be >= 0, got {self.camera_frames}")
 
 
 @dataclass(frozen=True)
@@ -173,12 +180,15 @@ class PerceptionStatusResponse(Message):
     published: int
     """Occupancy maps published."""
     dropped: dict[str, int]
-    """Frames not integrated, by reason: bad_message, unknown_camera, no_joint_state,
-    out_of_order, no_intrinsics, stale (replaced by a newer frame before it was processed)."""
+    """Frames not integrated, by reason: bad_message, too_large, unknown_camera, no_joint_state,
+    out_of_order, no_intrinsics, stale (replaced by a newer frame before it was processed),
+    before_clear, empty, unsupported, internal_error."""
     occupied_voxels: int
     stage_ms: dict[str, float]
     """Wall time per stage of the last frame [ms]."""
     ok: bool = True
+    camera_frames: dict[str, int] | None = None
+    """Camera id -> frames integrated since the last clear or start (as in `Occupancy`)."""
 
 
 @dataclass(frozen=True)

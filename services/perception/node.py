@@ -113,6 +113,8 @@ class PerceptionNode(Node):
         self.cameras = {cam.camera_id: cam for cam in cfg.cameras}
         self.world_from_camera = {cam.camera_id: perceived_world_from_camera(cam) for cam in cfg.cameras}
         self.frames = 0
+        self.camera_frames = {cam.camera_id: 0 for cam in cfg.cameras}
+        """Frames integrated per camera since the last clear or the start: an empty map is not free space."""
         self.published = 0
         self.drops = Drops()
         self.last_stage_ms: dict[str, float] = {}
@@ -159,6 +161,7 @@ class PerceptionNode(Node):
         with self._map_lock:
             cleared = self.map.voxel_count
             self.map.clear()
+            self.camera_frames = dict.fromkeys(self.camera_frames, 0)
             # A frame taken before now (pending, or on its way) shows the world as it was: after
             # a scene change it would put the old objects back into the emptied map.
             self._cleared_at = time.time()
@@ -169,9 +172,10 @@ class PerceptionNode(Node):
         decode_request(query, PerceptionStatusRequest)
         with self._map_lock:
             voxels = self.map.voxel_count
+            camera_frames = dict(self.camera_frames)
         reply_ok(query, PerceptionStatusResponse(frames=self.frames, published=self.published,
                                                  dropped=dict(self.drops.counts), occupied_voxels=voxels,
-                                                 stage_ms=dict(self.last_stage_ms)))
+                                                 stage_ms=dict(self.last_stage_ms), camera_frames=camera_frames))
 
     def _taken_before_clear(self, cloud: PointCloud | DepthImage) -> bool:
         """Whether the frame predates the last perception/clear (then counted as dropped)."""
@@ -224,6 +228,7 @@ class PerceptionNode(Node):
             except FrameRejected as exc:
                 self.drops.add(exc.reason, f"camera {cloud.camera_id!r}: {exc}")
                 return False
+            self.camera_frames[cloud.camera_id] += 1
         self._newest_stamp = max(self._newest_stamp, cloud.stamp)
         self.frames += 1
         return True
@@ -234,9 +239,11 @@ class PerceptionNode(Node):
             binary = self.map.planning_binary()
             centers = self.map.occupied_centers_m().astype(np.float32)
             clusters = self._clusters() if self._clusters_due() else None
+            camera_frames = dict(self.camera_frames)
         self.published += 1
         self._pub.put(Occupancy(stamp=self._newest_stamp, resolution_m=self.cfg.perception.resolution_m,
-                                octomap_binary=binary, occupied_centers_m=centers, seq=self.published).to_wire())
+                                octomap_binary=binary, occupied_centers_m=centers, seq=self.published,
+                                camera_frames=camera_frames).to_wire())
         if clusters is not None:
             self._clusters_pub.put(clusters.to_wire())
         self.last_stage_ms["publish"] = (time.perf_counter() - t0) * 1e3

@@ -14,6 +14,7 @@ import numpy as np
 import zenoh
 
 from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.perception.map_readiness import occupancy_problem
 from robonav.pipeline.planning.motion_planner import PLANNERS, MotionPlanner, PlanProblem, PoseGoal
 from robonav.pipeline.planning.ompl_planners import seed_ompl_once
 from robonav.pipeline.planning.result import PlanStatus
@@ -61,7 +62,9 @@ class PlannerNode(Node):
         self._pending_map: Occupancy | None = None
         self._map_stamp: float | None = None
         self._map_received_monotonic: float | None = None
-        self._first_map = threading.Event()
+        self._newest_map: Occupancy | None = None
+        """The newest map received (applied to the world only when a plan starts)."""
+        self._map_arrived = threading.Condition(self._state_lock)
         keys = Keys(cfg.cell)
         self._subs = [
             session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "planner")),
@@ -82,9 +85,9 @@ class PlannerNode(Node):
     def on_occupancy(self, sample: zenoh.Sample) -> None:
         occupancy = Occupancy.from_wire(sample.payload.to_bytes())
         with self._state_lock:
-            self._pending_map = occupancy
+            self._pending_map = self._newest_map = occupancy
             self._map_received_monotonic = time.monotonic()
-        self._first_map.set()
+            self._map_arrived.notify_all()
 
     def _apply_pending_map(self) -> None:
         with self._state_lock:
@@ -105,19 +108,25 @@ class PlannerNode(Node):
         return q
 
     def _check_map(self) -> None:
+        """Refuse to plan blind (`map_readiness.occupancy_problem`). A request that races the first
+        map (services just started) or a map being rebuilt (a clear) waits for it briefly."""
         if not self.cfg.planner.require_occupancy:
             return
-        # A request that races the very first map (services just started) waits for it briefly.
-        self._first_map.wait(self.cfg.planner.first_map_wait_s)
+        deadline = time.monotonic() + self.cfg.planner.first_map_wait_s
+        cameras = [camera.camera_id for camera in self.cfg.cameras]
         with self._state_lock:
-            received = self._map_received_monotonic
-        if received is None:
-            raise ProtocolError(ErrorCode.OCCUPANCY_MISSING, "no occupancy map received yet")
-        age = time.monotonic() - received
-        if age > self.cfg.planner.occupancy_max_age_s:
-            raise ProtocolError(ErrorCode.OCCUPANCY_STALE,
-                                f"newest occupancy map is {age:.1f} s old (limit {self.cfg.planner.occupancy_max_age_s} s)",
-                                {"age_s": age})
+            while True:
+                occupancy = self._newest_map
+                problem = occupancy_problem(
+                    None if occupancy is None else occupancy.stamp, None if occupancy is None else occupancy.camera_frames,
+                    now_s=time.time(), max_age_s=self.cfg.planner.occupancy_max_age_s, cameras=cameras,
+                    min_frames=self.cfg.planner.occupancy_min_frames)
+                left_s = deadline - time.monotonic()
+                if problem is None:
+                    return
+                if problem.code is ErrorCode.OCCUPANCY_STALE or left_s <= 0:
+                    raise problem
+                self._map_arrived.wait(left_s)
 
     def handle_plan(self, query: zenoh.Query) -> None:
         request = decode_request(query, PlanRequest)

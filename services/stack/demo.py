@@ -19,6 +19,7 @@ import yaml
 
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.config import ConfigError
+from robonav.pipeline.perception.map_readiness import map_complete
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, PlanResponse
 from robonav.services.client import QueryFailed, RobonavClient
@@ -42,6 +43,13 @@ def write_seeded_config(source: Path, seed: int, directory: Path) -> Path:
     out = directory / "demo-config.yaml"
     out.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
     return out
+
+
+def map_is_complete(client: RobonavClient, cfg: RobonavConfig) -> bool:
+    """Whether the newest map holds the frames the planner needs from every camera."""
+    occupancy = client.occupancy
+    return occupancy is not None and map_complete(occupancy.camera_frames, [c.camera_id for c in cfg.cameras],
+                                                  cfg.planner.occupancy_min_frames)
 
 
 def true_scene(cfg: RobonavConfig) -> CollisionWorld:
@@ -101,9 +109,11 @@ def run_demo(cfg: RobonavConfig, config_path: Path, seed: int, *, view_port: int
             missing = client.wait_for_services(SERVICES, SERVICE_START_TIMEOUT_S)
             if missing:
                 raise RuntimeError(f"services not up after {SERVICE_START_TIMEOUT_S:.0f} s: {sorted(missing)}; exited: {stack.dead()}")
-            if not client.wait_for(lambda: client.occupancy is not None and client.joint_state is not None,
+            # A complete map, not just a first one: the planner refuses one that is still being
+            # built (OCCUPANCY_INCOMPLETE), and so would the first plan.
+            if not client.wait_for(lambda: client.joint_state is not None and map_is_complete(client, cfg),
                                    cfg.demo.first_map_timeout_s):
-                raise RuntimeError(f"no occupancy map within {cfg.demo.first_map_timeout_s:.0f} s")
+                raise RuntimeError(f"no complete occupancy map within {cfg.demo.first_map_timeout_s:.0f} s")
             summary["first_map_s"] = round(time.monotonic() - started, 2)
             for index, goal in enumerate(cfg.demo.goals_rad):
                 # Plan on a map taken with the arm at rest, so no trace of its motion remains.

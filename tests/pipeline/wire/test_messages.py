@@ -50,7 +50,7 @@ EXAMPLES: list[Message] = [
     PointCloud(stamp=2.0, camera_id="cam0", points=RNG.normal(size=(50, 3)).astype(np.float32), seq=3,
                intrinsics=CameraIntrinsics(640, 480, 430.0, 430.0, 319.5, 239.5)),
     Occupancy(stamp=3.0, resolution_m=0.02, octomap_binary=b"# Octomap OcTree binary file\n\x00\xff",
-              occupied_centers_m=RNG.normal(size=(10, 3)).astype(np.float32), seq=2),
+              occupied_centers_m=RNG.normal(size=(10, 3)).astype(np.float32), seq=2, camera_frames={"cam0": 3, "cam1": 0}),
     PlanRequest(goal_positions=RNG.normal(size=7), joint_names=NAMES, start_positions=RNG.normal(size=7),
                 planner_id="rrtconnect", allowed_planning_time=1.0, seed=4, simplify=False,
                 max_velocity_scaling_factor=0.3, max_acceleration_scaling_factor=0.2, request_id="r1"),

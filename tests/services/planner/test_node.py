@@ -156,6 +156,55 @@ def test_a_request_racing_the_first_map_waits_for_it(planner: tuple[PlannerNode,
     assert replies and isinstance(replies[0], PlanResponse), replies
 
 
+def test_an_empty_map_after_a_clear_is_not_free_space(planner: tuple[PlannerNode, zenoh.Session, RobonavClient]) -> None:
+    """A map says how many frames each camera integrated since the last clear: until every
+    configured camera has the configured number, plans are OCCUPANCY_INCOMPLETE; and a map
+    is as old as its stamp says, whenever it arrives."""
+    node, session, client = planner
+    (camera,) = [c.camera_id for c in CONFIG.cameras]
+    needed = CONFIG.planner.occupancy_min_frames
+    assert needed >= 2
+
+    published = [0]
+    wall = _wall_map(-0.9, 0.0)
+
+    def publish(age_s: float, frames: int | None) -> None:
+        published[0] += 1
+        seq = published[0]
+        occupancy = dataclasses.replace(wall, stamp=time.time() - age_s, seq=seq,
+                                        camera_frames=None if frames is None else {camera: frames})
+        _publish_until(session, client.keys.occupancy, occupancy.to_wire(),
+                       lambda: node._newest_map is not None and node._newest_map.seq == seq)
+
+    publish(0.0, 0)  # what perception sends right after perception/clear
+    reply = client.plan(GOAL, start_positions=HOME, seed=1)
+    assert isinstance(reply, ErrorReply) and reply.code == "OCCUPANCY_INCOMPLETE", reply
+    assert reply.details["camera_frames"] == {camera: 0} and reply.details["required_frames"] == needed
+    assert reply.details["missing"] == [camera]
+    publish(0.0, needed - 1)
+    reply = client.plan(GOAL, start_positions=HOME, seed=1)
+    assert isinstance(reply, ErrorReply) and reply.code == "OCCUPANCY_INCOMPLETE", reply
+
+    # A plan that arrives while the map is rebuilt waits for it (up to first_map_wait_s).
+    node.cfg = dataclasses.replace(node.cfg, planner=dataclasses.replace(node.cfg.planner, first_map_wait_s=10.0))
+    replies: list = []
+    asking = threading.Thread(target=lambda: replies.append(client.plan(GOAL, start_positions=HOME, seed=1)))
+    asking.start()
+    time.sleep(0.5)
+    assert not replies, "the planner planned on an incomplete map"
+    publish(0.0, needed)
+    asking.join(timeout=20.0)
+    assert replies and isinstance(replies[0], PlanResponse), replies
+
+    # Arriving now does not make a map fresh: its stamp (newest frame) is what counts.
+    publish(5.0, needed)
+    reply = client.plan(GOAL, start_positions=HOME, seed=1)
+    assert isinstance(reply, ErrorReply) and reply.code == "OCCUPANCY_STALE" and reply.details["age_s"] > 4.0, reply
+    # A map from a producer older than the frame counts is taken as it is.
+    publish(0.0, None)
+    assert isinstance(client.plan(GOAL, start_positions=HOME, seed=1), PlanResponse)
+
+
 def test_a_late_planner_gets_the_last_published_map(tmp_path: Path) -> None:
     """Perception publishes the map latched: a planner started after it still gets the last one."""
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
