@@ -36,6 +36,11 @@ class ErrorCode(str, enum.Enum):
     INTERNAL_ERROR = "INTERNAL_ERROR"
     PAYLOAD_TOO_LARGE = "PAYLOAD_TOO_LARGE"
     """The request payload is larger than the service's `limits.max_request_bytes`."""
+    PATH_IN_COLLISION = "PATH_IN_COLLISION"
+    """An execute's timed motion leaves the joint limits or collides with the map, the planner's
+    scene objects or itself (MoveIt's plan-execution validity check)."""
+    SCENE_MISSING = "SCENE_MISSING"
+    """The executor holds no planning scene from a planner (`planner/scene_state`) to check an execute against."""
     # The executor reports these in `executor/status` (`error_code`) when it stopped a motion.
     JOINT_STATE_STALE = "JOINT_STATE_STALE"
     """No joint state for longer than the watchdog timeout while moving."""

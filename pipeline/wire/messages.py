@@ -338,6 +338,10 @@ class ExecuteResponse(Message):
     duration_s: float
     waypoint_count: int
     ok: bool = True
+    check_ms: float | None = None
+    """Time the executor took to time-parameterize and check the motion [ms]."""
+    checked_samples: int | None = None
+    """States of the motion checked against the map and the scene."""
 
 
 @dataclass(frozen=True)
@@ -624,6 +628,33 @@ class SceneResponse(Message):
 
 
 @dataclass(frozen=True)
+class AttachedObjectSpec(Message):
+    """One object fixed to a robot link in a `planner/scene_state` publication; travels nested, without `v`."""
+
+    link: str
+    """The robot link it moves with."""
+    object: SceneObjectSpec
+    """The object posed in `link`'s frame (link_from_object; `frame_id` is the link)."""
+    touch_links: tuple[str, ...] = ()
+    """Robot links it may touch besides `link`."""
+
+
+@dataclass(frozen=True)
+class PlanningSceneState(Message):
+    """`planner/scene_state` (latched pub): the planner's whole collision scene, sent when the
+    planner starts and after every change; what the executor checks an execute against."""
+
+    stamp: float
+    """When the scene took this form [s]."""
+    revision: int
+    """As in `SceneResponse`: +1 for every request that changed the scene (0 for a fresh planner)."""
+    objects: tuple[SceneObjectSpec, ...] = ()
+    """World objects, complete (mesh arrays included), posed in the world frame."""
+    attached: tuple[AttachedObjectSpec, ...] = ()
+    """Objects fixed to robot links."""
+
+
+@dataclass(frozen=True)
 class ContactEvent(Message):
     """`sim/contacts/events` (pub): a robot link started or stopped touching an obstacle (ground truth)."""
 
@@ -816,5 +847,5 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     JointState, PointCloud, Occupancy, PlanRequest, PlanResponse, ExecuteRequest, ExecuteResponse,
     StopRequest, StopResponse, Setpoint, ExecutorStatus, ContactsRequest, ContactsResponse, ErrorReply,
     SceneRequest, SceneResponse, DepthImage, ContactEvent, SimObjectsRequest, SimObjectsResponse, SimStatsRequest,
-    SimStatsResponse,
+    SimStatsResponse, PlanningSceneState,
 )

@@ -44,9 +44,10 @@ log = logging.getLogger("robonav.campaign")
 MAX_ATTEMPTS = 4
 """Plans per goal: the first and up to three replans."""
 RETRYABLE = {"NO_SOLUTION", "START_IN_COLLISION", "GOAL_IN_COLLISION", "OCCUPANCY_STALE", "OCCUPANCY_MISSING",
-             "OCCUPANCY_INCOMPLETE", "NO_JOINT_STATE", "INVALID_REQUEST"}
+             "OCCUPANCY_INCOMPLETE", "NO_JOINT_STATE", "INVALID_REQUEST", "PATH_IN_COLLISION"}
 """Plan or execute errors worth another try on a fresher map or state (INVALID_REQUEST: a path
-that no longer starts at the measured state)."""
+that no longer starts at the measured state; PATH_IN_COLLISION: the executor's newer map holds a
+voxel on the planned path)."""
 HOME_TOLERANCE_RAD = 0.05
 MAP_SETTLE_FRAMES = 3
 """Frames of the slowest camera integrated after a scene swap before planning in it."""

@@ -26,6 +26,7 @@ from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name,
 from robonav.pipeline.wire.messages import JointState, Occupancy, PlanRequest, PlanResponse
 from robonav.services.common import (
     Node,
+    declare_latched_publisher,
     declare_latched_subscriber,
     decode_request,
     guarded_queryable,
@@ -74,7 +75,10 @@ class PlannerNode(Node):
         # exactly one of several replicas (a client races them all with target ALL).
         self._queryable = session.declare_queryable(keys.plan, guarded_queryable(self.handle_plan, "planner"),
                                                     complete=True)
-        self.scene = PlanningScene(self.world, self._lock, current_q=self._start_from_joint_state)
+        # Latched: the executor checks every execute against this scene, also when it starts later.
+        self._scene_pub = declare_latched_publisher(session, keys.scene_state)
+        self.scene = PlanningScene(self.world, self._lock, current_q=self._start_from_joint_state,
+                                   on_change=lambda state: self._scene_pub.put(state.to_wire()))
         self._scene_queryable = session.declare_queryable(keys.scene, guarded_queryable(self.scene.handle_scene, "planner"))
 
     def on_joint_state(self, sample: zenoh.Sample) -> None:
@@ -199,6 +203,7 @@ class PlannerNode(Node):
     def close(self) -> None:
         self._queryable.undeclare()
         self._scene_queryable.undeclare()
+        self._scene_pub.undeclare()
         for sub in self._subs:
             sub.undeclare()
 

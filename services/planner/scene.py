@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import threading
+import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -23,9 +24,15 @@ from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.joint_order import reorder_to_robot
-from robonav.pipeline.wire.messages import SceneObjectSpec, SceneRequest, SceneResponse
+from robonav.pipeline.wire.messages import (
+    AttachedObjectSpec,
+    PlanningSceneState,
+    SceneObjectSpec,
+    SceneRequest,
+    SceneResponse,
+)
 from robonav.services.common import decode_request, reply_ok
-from robonav.services.planner.scene_specs import checked, invalid_request, object_state, scene_object
+from robonav.services.planner.scene_specs import checked, invalid_request, object_spec, object_state, scene_object
 
 log = logging.getLogger("robonav.planner.scene")
 
@@ -42,6 +49,7 @@ class PlanningScene:
         *,
         current_q: Callable[[], FloatArray] | None = None,
         initial_objects: Sequence[SceneObject] = (),
+        on_change: Callable[[PlanningSceneState], None] | None = None,
     ) -> None:
         """Take over the world's primitive objects.
 
@@ -52,14 +60,18 @@ class PlanningScene:
                 `ProtocolError(NO_JOINT_STATE)`); used by attach/detach of world-posed objects
                 when the request carries no `joint_positions`.
             initial_objects: World objects the scene starts with (e.g. from the config).
+            on_change: Called with the whole scene now and after every change, under the lock,
+                so calls come in revision order (the planner publishes it on `planner/scene_state`).
         """
         self._world = world
         self._lock = lock
         self._current_q = current_q
         self._objects: dict[str, SceneObject] = {o.name: o for o in initial_objects}
         self._revision = 0
+        self._on_change = on_change
         with self._lock:
             world.set_objects(list(self._objects.values()))
+            self._changed()
 
     @property
     def revision(self) -> int:
@@ -83,7 +95,20 @@ class PlanningScene:
             changed = getattr(self, f"_{request.operation}")(request)
             if changed:
                 self._revision += 1
+                self._changed()
             return self._describe(request.request_id)
+
+    def state(self) -> PlanningSceneState:
+        """The whole scene as `planner/scene_state` carries it: complete objects, attached ones in their link's frame."""
+        attached = tuple(AttachedObjectSpec(link=a.link, touch_links=a.touch_links,
+                                            object=dataclasses.replace(object_spec(a.object), frame_id=a.link))
+                         for a in self._world.attached_objects)
+        return PlanningSceneState(stamp=time.time(), revision=self._revision,
+                                  objects=tuple(object_spec(o) for o in self._objects.values()), attached=attached)
+
+    def _changed(self) -> None:
+        if self._on_change is not None:
+            self._on_change(self.state())
 
     # Each operation validates everything before it touches the world, so a rejected request changes nothing.
 

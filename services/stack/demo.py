@@ -32,6 +32,9 @@ from robonav.services.view.snapshot import snapshot_view
 log = logging.getLogger("robonav.demo")
 
 SERVICE_START_TIMEOUT_S = 60.0
+PLAN_ATTEMPTS = 3
+"""Plans (and executes) per goal when one is refused for a reason a fresher map can remove."""
+RETRYABLE = {"OCCUPANCY_INCOMPLETE", "OCCUPANCY_STALE", "OCCUPANCY_MISSING", "PATH_IN_COLLISION"}
 SETTLE_TIMEOUT_S = 2.0
 """Longest wait after a trajectory ends for the arm to come within tolerance of the goal [s]."""
 
@@ -66,22 +69,39 @@ def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, i
     # Blocked means the goal needs a detour around a real obstacle.
     record: dict[str, Any] = {"index": index, "goal_rad": goal.round(4).tolist(),
                               "straight_line_blocked": not truth.motion_valid(start, goal, 0.01)}
-    plan = client.plan(goal, seed=seed + index, request_id=f"demo-{index}")
-    if isinstance(plan, ErrorReply):
-        record.update(reached=False, error=f"plan: {plan.code}: {plan.message}")
-        return record
-    assert isinstance(plan, PlanResponse)
-    record.update(planning_ms=round(plan.planning_time_s * 1e3, 2), path_length_rad=round(plan.path_length_rad, 4),
-                  waypoints=plan.waypoint_count,
-                  min_clearance_m=None if plan.min_clearance_m is None else round(plan.min_clearance_m, 4))
-    started = time.monotonic()
-    # A map that changes under the moving arm (noise, a newly seen surface) should cost a
-    # replan, not the goal.
-    execution = client.execute(plan.path, joint_names=plan.joint_names, replan=True, occupancy_stamp=plan.occupancy_stamp)
-    if isinstance(execution, ErrorReply):
-        record.update(reached=False, error=f"execute: {execution.code}: {execution.message}")
+    refusals: list[str] = []
+    for attempt in range(PLAN_ATTEMPTS):
+        plan = client.plan(goal, seed=seed + index + 100 * attempt, request_id=f"demo-{index}-{attempt}")
+        if isinstance(plan, ErrorReply):
+            record.update(reached=False, error=f"plan: {plan.code}: {plan.message}")
+            if plan.code in RETRYABLE:
+                refusals.append(f"plan: {plan.code}")
+                continue
+            return record
+        assert isinstance(plan, PlanResponse)
+        record.update(planning_ms=round(plan.planning_time_s * 1e3, 2), path_length_rad=round(plan.path_length_rad, 4),
+                      waypoints=plan.waypoint_count,
+                      min_clearance_m=None if plan.min_clearance_m is None else round(plan.min_clearance_m, 4))
+        started = time.monotonic()
+        # A map that changes under the moving arm (noise, a newly seen surface) should cost a
+        # replan, not the goal.
+        execution = client.execute(plan.path, joint_names=plan.joint_names, replan=True,
+                                   occupancy_stamp=plan.occupancy_stamp)
+        if isinstance(execution, ErrorReply):
+            # The executor checks the path against its own, newer map: a voxel that came in since
+            # the plan refuses it (PATH_IN_COLLISION), and a new plan sees that voxel too.
+            record.update(reached=False, error=f"execute: {execution.code}: {execution.message}")
+            if execution.code in RETRYABLE:
+                refusals.append(f"execute: {execution.code}: {execution.message}")
+                continue
+            return record
+        break
+    else:
         return record
     assert isinstance(execution, ExecuteResponse)
+    record.pop("error", None)
+    record.update(plan_attempts=attempt + 1, refusals=refusals, execute_check_ms=execution.check_ms,
+                  execute_checked_samples=execution.checked_samples)
     result = client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + cfg.demo.goal_timeout_s)
     # The arm lags the last setpoint a little (and more on a loaded machine): let it settle
     # well inside the tolerance, or give up after a while and judge where it is.
@@ -128,6 +148,8 @@ def run_demo(cfg: RobonavConfig, config_path: Path, seed: int, *, view_port: int
             contacts = client.contacts()
             if isinstance(contacts, ErrorReply):
                 raise RuntimeError(f"contacts query failed: {contacts.code}: {contacts.message}")
+            checks = [g["execute_check_ms"] for g in summary["goals"] if g.get("execute_check_ms") is not None]
+            summary["execute_check_ms_median"] = round(float(np.median(checks)), 2) if checks else None
             summary.update(contacts=contacts.contact_count, contact_pairs=list(contacts.pairs),
                            min_obstacle_distance_m=None if contacts.min_distance_m is None else round(contacts.min_distance_m, 4))
             if snapshot is not None:

@@ -13,6 +13,7 @@ from robonav.pipeline.wire.codec import SCHEMA_VERSION, Message, ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.messages import (
     ALL_MESSAGES,
+    AttachedObjectSpec,
     CameraStats,
     ContactEvent,
     ContactsRequest,
@@ -25,6 +26,7 @@ from robonav.pipeline.wire.messages import (
     JointState,
     ObjectMotionSpec,
     Occupancy,
+    PlanningSceneState,
     PlanRequest,
     PlanResponse,
     PointCloud,
@@ -100,6 +102,12 @@ EXAMPLES: list[Message] = [
     SimObjectsResponse(stamp=7.0, sim_time_s=3.5, revision=2, objects=(
         SceneObjectState("box", "box", (0.5, 0.0, 0.2), (0.0, 0.0, 0.0, 1.0), size_m=(0.1, 0.2, 0.3)),),
         pending_motions=1, fired_motions=1, request_id="o1"),
+    PlanningSceneState(stamp=8.0, revision=3, objects=(
+        SceneObjectSpec("tet", "mesh", (0.4, 0.1, 0.0), vertices_m=RNG.normal(size=(4, 3)),
+                        triangles=np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]])),), attached=(
+        AttachedObjectSpec(link="panda_hand", touch_links=("panda_leftfinger",),
+                           object=SceneObjectSpec("cup", "cylinder", (0.0, 0.0, 0.1), radius_m=0.04, length_m=0.1,
+                                                  frame_id="panda_hand")),)),
     SimStatsRequest(reset=True),
     SimStatsResponse(wall_time_s=10.0, sim_time_s=9.99, real_time_factor=0.999, steps=2398, step_lateness_ms_p50=0.1,
                      step_lateness_ms_p99=4.0, step_lateness_ms_max=20.0, dropped_time_s=0.0,

@@ -18,10 +18,13 @@ import pytest
 import zenoh
 
 from robonav.pipeline.planning.ik import pose_error
+from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.transforms import make_transform
 from robonav.pipeline.wire.messages import (
     ErrorReply,
     JointState,
     Occupancy,
+    PlanningSceneState,
     PlanRequest,
     PlanResponse,
     SceneObjectSpec,
@@ -29,12 +32,13 @@ from robonav.pipeline.wire.messages import (
     SceneResponse,
 )
 from robonav.services.client import RobonavClient
-from robonav.services.common import declare_latched_publisher, open_session
+from robonav.services.common import declare_latched_publisher, declare_latched_subscriber, open_session
 from robonav.services.config import ZenohConfig, load_config
 from robonav.services.keys import Keys
 from robonav.services.planner.node import PlannerNode
 
 CONFIG = load_config()
+CONFIG_ROBOT = RobotModel.from_config(CONFIG.robot)
 HOME = np.array(CONFIG.robot.home_position_rad)
 GOAL = np.array(CONFIG.demo.goals_rad[0])
 
@@ -262,6 +266,50 @@ def test_goal_forms_and_the_planning_scene_over_zenoh(planner: tuple[PlannerNode
     scene = client.scene(SceneRequest(operation="remove", names=("crate",)))
     assert isinstance(scene, SceneResponse) and scene.objects == ()
     assert isinstance(client.plan(GOAL, start_positions=HOME, seed=3), PlanResponse)
+
+
+def test_the_planner_publishes_its_whole_scene_latched_on_every_change(
+        planner: tuple[PlannerNode, zenoh.Session, RobonavClient]) -> None:
+    """What the executor checks executes against: complete objects (meshes too), attached ones in their link's frame."""
+    _, session, client = planner
+    states: list[PlanningSceneState] = []
+    arrived = threading.Condition()
+
+    def on_state(sample: zenoh.Sample) -> None:
+        with arrived:
+            states.append(PlanningSceneState.from_wire(sample.payload.to_bytes()))
+            arrived.notify_all()
+
+    subscriber = declare_latched_subscriber(session, client.keys.scene_state, on_state)  # after the planner started
+    try:
+        with arrived:
+            assert arrived.wait_for(lambda: states, 5.0), "a late subscriber got no scene"
+        assert states[-1].revision == 0 and states[-1].objects == () and states[-1].attached == ()
+        vertices = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.1]])
+        triangles = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+        reply = client.scene(SceneRequest(operation="add", objects=(
+            SceneObjectSpec("tetra", "mesh", (0.6, 0.3, 0.4), vertices_m=vertices, triangles=triangles),
+            SceneObjectSpec("cup", "cylinder", (0.5, -0.3, 0.3), radius_m=0.04, length_m=0.1))))
+        assert isinstance(reply, SceneResponse)
+        with arrived:
+            assert arrived.wait_for(lambda: states[-1].revision == 1, 5.0)
+        tetra = next(o for o in states[-1].objects if o.name == "tetra")
+        np.testing.assert_array_equal(tetra.vertices_m, vertices)
+        np.testing.assert_array_equal(tetra.triangles, triangles)
+        reply = client.scene(SceneRequest(operation="attach", names=("cup",), link="panda_hand",
+                                          touch_links=("panda_leftfinger",), joint_positions=HOME))
+        assert isinstance(reply, SceneResponse)
+        with arrived:
+            assert arrived.wait_for(lambda: states[-1].revision == 2, 5.0)
+        (held,) = states[-1].attached
+        assert held.link == "panda_hand" and held.touch_links == ("panda_leftfinger",)
+        assert held.object.frame_id == "panda_hand" and [o.name for o in states[-1].objects] == ["tetra"]
+        # Posed in the hand's frame: where the hand holds it at HOME is where it was added.
+        world_from_cup = CONFIG_ROBOT.frame_pose(HOME, "panda_hand") @ make_transform(held.object.position_m,
+                                                                                      held.object.quat_xyzw)
+        np.testing.assert_allclose(world_from_cup[:3, 3], [0.5, -0.3, 0.3], atol=1e-9)
+    finally:
+        subscriber.undeclare()
 
 
 def _quat_xyzw(rotation: np.ndarray) -> np.ndarray:
