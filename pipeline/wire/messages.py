@@ -841,6 +841,19 @@ class SimStatsResponse(Message):
     """Longest gap between two published joint states [ms]."""
     cameras: tuple[CameraStats, ...] = ()
     ok: bool = True
+    driver_state: str | None = None
+    """How the arm takes setpoints now: following, braking (on its own) or holding."""
+    setpoints_followed: int | None = None
+    """Setpoints followed since the sim started (not reset with the window)."""
+    setpoints_rejected: dict[str, int] | None = None
+    """Setpoints not followed since the sim started, by reason: joint_limits, velocity,
+    acceleration, jump, out_of_order, bad_message (`pipeline/sim/driver.py`)."""
+    setpoint_timeouts: int | None = None
+    """Times setpoints stopped arriving mid-motion and the arm braked on its own."""
+    brakes: int | None = None
+    """Times the arm braked on its own, for any reason."""
+    last_rejection: str | None = None
+    """The last setpoint rejection in words (reason: detail)."""
 
 
 ALL_MESSAGES: tuple[type[Message], ...] = (

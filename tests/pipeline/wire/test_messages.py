@@ -111,7 +111,9 @@ EXAMPLES: list[Message] = [
     SimStatsRequest(reset=True),
     SimStatsResponse(wall_time_s=10.0, sim_time_s=9.99, real_time_factor=0.999, steps=2398, step_lateness_ms_p50=0.1,
                      step_lateness_ms_p99=4.0, step_lateness_ms_max=20.0, dropped_time_s=0.0,
-                     joint_state_period_ms_max=30.0, cameras=(CameraStats("cam0", frames=50, render_ms_p50=90.0),)),
+                     joint_state_period_ms_max=30.0, cameras=(CameraStats("cam0", frames=50, render_ms_p50=90.0),),
+                     driver_state="holding", setpoints_followed=1200, setpoints_rejected={"jump": 2, "velocity": 0},
+                     setpoint_timeouts=1, brakes=3, last_rejection="jump: joint 0 position is 0.5 from ..."),
 ]
 
 
