@@ -129,7 +129,11 @@ class PlannerNode(Node):
                 if problem is None:
                     return
                 if problem.code is ErrorCode.OCCUPANCY_STALE or left_s <= 0:
-                    raise problem
+                    # A fresh exception: raising `problem` itself would tie it to this frame in a cycle
+                    # (exception, traceback, frame, local), keeping the query alive until the garbage
+                    # collector runs, and Zenoh ends a query only when it is dropped: the client would
+                    # wait for its timeout after the error reply.
+                    raise ProtocolError(problem.code, problem.message, problem.details)
                 self._map_arrived.wait(left_s)
 
     def handle_plan(self, query: zenoh.Query) -> None:
