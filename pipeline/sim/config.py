@@ -51,7 +51,7 @@ class SimConfig:
     """Scripted obstacle motions, armed when the sim starts (see `ObjectMotion`)."""
     clutter: ClutterConfig = field(default_factory=ClutterConfig)
     """Procedural scenes (`robonav campaign`): the table and what is put on it."""
-    setpoint_timeout_s: float = 0.1
+    setpoint_timeout_s: float = 0.2
     """Setpoint watchdog (Franka's communication watchdog, a UR's RTDE watchdog): after this long
     without a followed setpoint while the commanded motion moves, the arm brakes to rest on its
     own [s]. Until then the joints keep the last setpoint's velocity (a first-order hold)."""

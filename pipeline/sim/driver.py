@@ -12,8 +12,10 @@ a driver must do"):
   (0.5 a_max dt^2, plus v_max times a small timing slack for clock jitter), its velocity within
   a_max (dt + slack). dt is the stamp difference, but never more than the time the driver
   itself saw pass (plus the slack), so a forged future stamp buys no reach. While the arm
-  rests or brakes, a setpoint must start where the driver's own command is (within v_max and
-  a_max times the slack). A setpoint stamped no later than the last followed one is ignored.
+  rests or brakes, a setpoint must be one a motion starting at the driver's own command could
+  reach since the driver last looked for setpoints (plus the slack): a driver that stalled for a
+  while sees its commander's first setpoint that far into the motion. A setpoint stamped no
+  later than the last followed one is ignored.
 * **Braking.** A rejected setpoint, or no setpoint for `timeout_s` while the commanded motion
   is moving, makes the driver brake from its own command to rest as fast as the arm's full
   limits allow (jerk-limited, each joint on its own, as the executor's emergency stop), and
@@ -105,6 +107,8 @@ class SetpointFollower:
         """The last followed setpoint: q, qd, qdd, its stamp, when the driver took it."""
         self._brake: JointTrajectory | None = None
         self._brake_start_s = 0.0
+        self._looked_s: float | None = None
+        """When the driver last looked for a setpoint (`offer` or `tick`)."""
 
     def offer(self, q: FloatArray, qd: FloatArray, qdd: FloatArray, stamp_s: float, now_s: float,
               commanded: tuple[FloatArray, FloatArray]) -> Rejection | None:
@@ -118,6 +122,7 @@ class SetpointFollower:
         """
         self._expire_rest(now_s)
         rejection = self._judge(np.asarray(q, float), np.asarray(qd, float), np.asarray(qdd, float), stamp_s, now_s)
+        self._looked_s = now_s
         if rejection is None:
             self._ref = (np.array(q, float), np.array(qd, float), np.array(qdd, float), float(stamp_s), float(now_s))
             self.state = DriverState.FOLLOWING
@@ -138,7 +143,9 @@ class SetpointFollower:
             self._start_brake(now_s, commanded)
 
     def tick(self, now_s: float, commanded: tuple[FloatArray, FloatArray]) -> bool:
-        """Advance the watchdog and the brake; True when setpoints timed out mid-motion just now."""
+        """Advance the watchdog and the brake; True when setpoints timed out mid-motion just now.
+        Call it every time the driver looks for setpoints, whether one came or not."""
+        self._looked_s = now_s
         self._expire_rest(now_s)
         if self.state is DriverState.FOLLOWING and self._ref is not None and now_s - self._ref[4] > self.timeout_s:
             self.counters.timeouts += 1
@@ -190,10 +197,12 @@ class SetpointFollower:
             velocity_reach = lim.acceleration * (dt + self.slack_s)
         else:
             start_q, start_qd = self.command(now_s) or (self._hold, np.zeros_like(self._hold))
-            reach = lim.velocity * self.slack_s
-            position_error = np.abs(q - start_q)
+            unseen_s = self.slack_s + (0.0 if self._looked_s is None else min(max(now_s - self._looked_s, 0.0),
+                                                                             self.timeout_s))
+            reach = 0.5 * lim.acceleration * unseen_s ** 2 + lim.velocity * self.slack_s
+            position_error = np.abs(q - (start_q + start_qd * unseen_s))
             velocity_error = np.abs(qd - start_qd)
-            velocity_reach = lim.acceleration * self.slack_s
+            velocity_reach = lim.acceleration * unseen_s
         for what, error, bound in (("position", position_error, reach), ("velocity", velocity_error, velocity_reach)):
             over = np.flatnonzero(error > bound + 1e-9)
             if len(over):

@@ -315,9 +315,9 @@ class ExecuteRequest(Message):
     replan_attempts: int | None = None
     """Plans tried per block before giving up; default executor.replan_attempts."""
     occupancy_stamp: float | None = None
-    """`PlanResponse.occupancy_stamp` of the plan this path came from: the path monitor then
-    watches every voxel that map lacked. Without it, the newest map at acceptance is taken as
-    the one planned on, and voxels that arrived while the plan was in flight go unwatched."""
+    """`PlanResponse.occupancy_stamp` of the plan this path came from. Accepted for compatibility,
+    no longer used: the executor checks the motion against its own newest map and watches every
+    voxel not in that map, whatever map the plan saw."""
 
     def __post_init__(self) -> None:
         if self.path.shape[0] < 1:

@@ -133,3 +133,18 @@ def test_stamps_cannot_buy_reach_and_old_stamps_are_ignored() -> None:
     rejection = follower.offer(*_at(t - 0.1), 1000.0 + t - 0.1, t, _at(t)[:2])
     assert rejection is not None and rejection.reason == "out_of_order"
     assert follower.state is DriverState.FOLLOWING and follower.counters.brakes == 0  # ignored, no brake
+
+
+def test_a_driver_that_stalled_takes_a_motion_from_rest_that_far_in() -> None:
+    """The commander started a motion while the driver (the sim's physics loop) stalled: the
+    first setpoint it sees is that far into the motion. Reach counts from its last look."""
+    into = 0.08
+    q, qd, qdd = _at(into)
+    assert np.abs(qd).max() > 0.3
+    prompt = _follower()
+    prompt.tick(10.0, (HOME, np.zeros(7)))
+    rejection = prompt.offer(q, qd, qdd, 1000.0 + into, 10.0 + STEP_S, (HOME, np.zeros(7)))
+    assert rejection is not None and rejection.reason == "jump"  # it looked 4 ms ago: no motion gets that far
+    stalled = _follower()
+    stalled.tick(10.0, (HOME, np.zeros(7)))
+    assert stalled.offer(q, qd, qdd, 1000.0 + into, 10.0 + into, (HOME, np.zeros(7))) is None

@@ -51,8 +51,10 @@ WALL = {"name": "wall", "type": "box", "position_m": [0.0, 0.38, 0.5], "size_m":
 @pytest.fixture(scope="module")
 def sim_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
     directory = tmp_path_factory.mktemp("sim")
+    # The tests publish setpoints from a Python loop that shares its process with the recorder's
+    # decoding: a generous setpoint timeout keeps a stall of that loop from braking the arm.
     path = write_config(directory, "sim.yaml", zenoh={"connect": [f"tcp/127.0.0.1:{free_port()}"]},
-                        sim={"follow": "kinematic", "objects": [WALL]})
+                        sim={"follow": "kinematic", "objects": [WALL], "setpoint_timeout_s": 1.0})
     data = yaml.safe_load(path.read_text(encoding="utf-8"))
     data["cameras"] = [{"camera_id": "clean", "output": "both", **CAMERA}, {"camera_id": "noisy", **CAMERA}]
     data["sim"]["camera_noise"] = {"noisy": {"enabled": True, "dropout_probability": 0.3, "latency_s": NOISY_LATENCY_S}}
