@@ -111,7 +111,8 @@ def test_a_motion_that_ended_at_rest_just_holds() -> None:
     follower = _follower()
     q = HOME.copy()
     assert follower.offer(q, np.zeros(7), np.zeros(7), 5.0, 0.0, (q, np.zeros(7))) is None
-    assert not follower.tick(1.0, (q, np.zeros(7)))
+    for t in np.arange(STEP_S, 2.0, STEP_S):  # the driver looks at every step, as the sim's does
+        assert not follower.tick(float(t), (q, np.zeros(7)))
     assert follower.state is DriverState.HOLDING and follower.counters.brakes == 0
     # Long after, a setpoint far from the held position is a jump, whatever its stamp says.
     far = q + np.array([0.3, 0, 0, 0, 0, 0, 0])

@@ -72,9 +72,15 @@ def test_an_execute_through_the_pillar_is_refused_with_or_without_a_stamp(client
 
 def test_an_execute_through_a_planner_object_is_refused(client: RobonavClient) -> None:
     """The executor knows the planner's scene objects (planner/scene_state), not only the map."""
+    _move_to(client, np.array(DEFAULT.robot.home_position_rad))
     start = _position(client)
-    goal = start + np.array([0.3, 0, 0, 0, 0, 0, 0])
-    midway = ROBOT.frame_pose(start + np.array([0.15, 0, 0, 0, 0, 0, 0]), "panda_hand")[:3, 3]
+    # A swing of the base clear of the scene, with the object early on it: the first state that
+    # collides meets the object, nothing else.
+    clear_of_scene = CollisionWorld(ROBOT, padding_m=0.05)
+    clear_of_scene.set_objects(DEFAULT.sim.objects)
+    swing = next(d for d in (0.3, -0.3, 0.6, -0.6) if clear_of_scene.motion_valid(start, start + d * np.eye(7)[0], 0.01))
+    goal = start + swing * np.eye(7)[0]
+    midway = ROBOT.frame_pose(start + 0.3 * swing * np.eye(7)[0], "panda_hand")[:3, 3]
     added = client.scene(SceneRequest(operation="add", objects=(
         SceneObjectSpec("keep_out", "box", tuple(midway), size_m=(0.08, 0.08, 0.08)),)))
     assert isinstance(added, SceneResponse), added
