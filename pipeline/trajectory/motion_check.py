@@ -7,6 +7,14 @@ so that no joint moves more than the planner's edge resolution between two sampl
 gets the planner's test: joint limits, padded links against the (inflated) occupancy map and
 the scene objects, bare links against each other, attached objects.
 
+On the straight lines of the path the check asks about exactly the states the planner
+checked: each sample there is moved to the nearest of the planner's states on that segment
+(`k / steps` of it, `collision/edges.step_count` at the planner's resolution), so a path the
+planner accepted on the same map is never refused for grazing the padding between two of the
+planner's states (it happened: a demo plan's third segment touched the padding at 1/200 of its
+length, between two of the planner's 23 states, and the motion's samples fell on it). Corner
+blends, off the polyline, are sampled in time.
+
 One exception, also the planner's: an arm that braked in front of an obstacle often rests with
 a padded link inside the inflated map, and the planner then plans a way out
 (`planning/start_escape.py`). When the start state collides with the map alone, samples within
@@ -24,10 +32,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robonav.pipeline.collision.edges import step_count
 from robonav.pipeline.collision.world import OCCUPANCY, CollisionWorld
 from robonav.pipeline.planning.start_escape import way_out_touches
 from robonav.pipeline.trajectory.trajectory import JointTrajectory
 from robonav.pipeline.types import FloatArray, StateValidFn
+
+ON_LINE_RAD = 1e-9
+"""A sample this close to a segment of the path (every joint) lies on it: a straight piece."""
 
 
 @dataclass(frozen=True)
@@ -64,6 +76,32 @@ def motion_samples(trajectory: JointTrajectory, resolution_rad: float) -> tuple[
     dt_s = resolution_rad / max(speed, 1e-9)
     times, q, _, _ = trajectory.sample_uniform(min(dt_s, trajectory.duration_s))
     return times, q
+
+
+def on_plan_samples(states_rad: FloatArray, path_rad: FloatArray | None, resolution_rad: float) -> FloatArray:
+    """`states_rad` (M, n) with each state that lies on a segment of `path_rad` (K, n) moved to the
+    nearest state the planner checks on that segment; states off the polyline stay (see the
+    module docstring). None: no path, the states as they are."""
+    states = np.array(states_rad, dtype=np.float64)
+    if path_rad is None or len(path_rad) < 2:
+        return states
+    path = np.asarray(path_rad, dtype=np.float64)
+    starts, deltas = path[:-1], np.diff(path, axis=0)  # (P, n)
+    lengths_sq = np.einsum("pn,pn->p", deltas, deltas)
+    moving = lengths_sq > 0
+    starts, deltas, lengths_sq = starts[moving], deltas[moving], lengths_sq[moving]
+    if len(starts) == 0:
+        return states
+    steps = np.array([step_count(a, a + d, resolution_rad) for a, d in zip(starts, deltas)])
+    # Position along each segment and distance from it, for every state and segment: (M, P).
+    along = np.clip(np.einsum("mpn,pn->mp", states[:, None, :] - starts[None], deltas) / lengths_sq, 0.0, 1.0)
+    off = np.max(np.abs(starts[None] + along[..., None] * deltas[None] - states[:, None, :]), axis=2)
+    segment = np.argmin(off, axis=1)
+    on_line = off[np.arange(len(states)), segment] <= ON_LINE_RAD
+    k = np.round(along[np.arange(len(states)), segment] * steps[segment]) / steps[segment]
+    snapped = starts[segment] + k[:, None] * deltas[segment]
+    states[on_line] = snapped[on_line]
+    return states
 
 
 class MotionRule:
@@ -112,16 +150,19 @@ class MotionRule:
 
 
 def check_motion(world: CollisionWorld, trajectory: JointTrajectory, *, resolution_rad: float,
-                 escape_radius_rad: float) -> MotionViolation | None:
+                 escape_radius_rad: float, path_rad: FloatArray | None = None) -> MotionViolation | None:
     """The first sample of `trajectory` outside the joint limits or in collision, or None.
 
     Args:
         world: The world to check against.
         trajectory: The motion as it will be commanded.
-        resolution_rad: Largest joint step between samples (the planner's edge resolution) [rad].
+        resolution_rad: Largest joint step between samples (the planner's path check resolution) [rad].
         escape_radius_rad: The planner's start escape radius [rad] (see the module docstring).
+        path_rad: (K, n) the path `trajectory` was timed from: samples on its lines are the
+            planner's states (`on_plan_samples`); None: every sample as timed.
     """
-    return _first_violation(world, *motion_samples(trajectory, resolution_rad), escape_radius_rad)
+    times, states = motion_samples(trajectory, resolution_rad)
+    return _first_violation(world, times, on_plan_samples(states, path_rad, resolution_rad), escape_radius_rad)
 
 
 def _first_violation(world: CollisionWorld, times: FloatArray, states: FloatArray,
@@ -146,7 +187,7 @@ class CheckedTiming:
 
 
 def checked_timing(world: CollisionWorld, timing: Callable[[StateValidFn | None], JointTrajectory], *,
-                   resolution_rad: float, escape_radius_rad: float) -> CheckedTiming:
+                   resolution_rad: float, escape_radius_rad: float, path_rad: FloatArray | None = None) -> CheckedTiming:
     """Time a path and check the motion; a corner blend that fails is dropped (rest on its waypoint).
 
     Shortcut paths hug obstacles at their corners, and a blend cuts the corner: the planner
@@ -159,16 +200,19 @@ def checked_timing(world: CollisionWorld, timing: Callable[[StateValidFn | None]
         timing: Times the path; its argument is the state check for blends (None: blend freely).
         resolution_rad: Largest joint step between checked samples [rad].
         escape_radius_rad: The planner's start escape radius [rad].
+        path_rad: (K, n) the path `timing` times (see `check_motion`).
 
     Returns:
         The trajectory to stream without a violation, or the last trajectory tried and its first violation.
     """
     trajectory = timing(None)
     times, states = motion_samples(trajectory, resolution_rad)
+    states = on_plan_samples(states, path_rad, resolution_rad)
     violation = _first_violation(world, times, states, escape_radius_rad)
     if violation is not None and trajectory.max_path_deviation_rad > 0.0:
         rule = MotionRule(world, states, escape_radius_rad=escape_radius_rad)
         trajectory = timing(rule.valid)
         times, states = motion_samples(trajectory, resolution_rad)
+        states = on_plan_samples(states, path_rad, resolution_rad)
         violation = _first_violation(world, times, states, escape_radius_rad)
     return CheckedTiming(trajectory, violation, len(states) if violation is None else violation.samples)

@@ -35,7 +35,7 @@ from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.trajectory.motion_check import MotionViolation, checked_timing
 from robonav.pipeline.trajectory.trajectory import JointTrajectory
-from robonav.pipeline.types import StateValidFn
+from robonav.pipeline.types import FloatArray, StateValidFn
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.messages import Occupancy, PlanningSceneState
@@ -116,8 +116,8 @@ class ExecuteCheck:
         with self._scene_arrived:
             return None if self._scene is None else self._scene.state.revision
 
-    def check(self, timing: Timing) -> CheckedMotion:
-        """Time the path (`timing`) and check the motion against the newest map and the planner's scene.
+    def check(self, path: FloatArray, timing: Timing) -> CheckedMotion:
+        """Time `path` (K, n) with `timing` and check the motion against the newest map and the planner's scene.
 
         Raises:
             ProtocolError: SCENE_MISSING, OCCUPANCY_MISSING / _STALE / _INCOMPLETE (the planner's
@@ -128,8 +128,10 @@ class ExecuteCheck:
         occupancy = self._wait_for_map()
         with self._world_lock:
             self._apply(scene, occupancy)
-            checked = checked_timing(self._world, timing, resolution_rad=self._cfg.planner.edge_resolution_rad,
-                                     escape_radius_rad=self._cfg.planner.start_escape_rad)
+            # The planner's own resolution for a returned path: its states are the ones checked on the lines.
+            resolution = self._cfg.planner.path_check_resolution_rad or self._cfg.planner.edge_resolution_rad
+            checked = checked_timing(self._world, timing, resolution_rad=resolution,
+                                     escape_radius_rad=self._cfg.planner.start_escape_rad, path_rad=path)
         revision = None if scene is None else scene.state.revision
         if checked.violation is not None:
             raise _refusal(checked.violation, occupancy, revision)

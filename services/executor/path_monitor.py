@@ -203,7 +203,7 @@ class PathMonitor:
             ProtocolError: the execute check refused it (PATH_IN_COLLISION, a map or scene problem).
         """
         path = reorder_to_robot(plan.path, plan.joint_names, self._node.robot.joint_names, "path")
-        checked = self._node.check.check(lambda valid: self._node._time_parameterize(
+        checked = self._node.check.check(path, lambda valid: self._node._time_parameterize(
             path, execution.velocity_scaling, execution.acceleration_scaling, valid))
         trajectory = checked.trajectory
         with self._node._lock:

@@ -9,7 +9,7 @@ from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.perception.maps.octree import inflation_offsets
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.trajectory.motion_check import check_motion, checked_timing, motion_samples
+from robonav.pipeline.trajectory.motion_check import check_motion, checked_timing, motion_samples, on_plan_samples
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.pipeline.types import StateValidFn
 from robonav.services.config import load_config
@@ -120,3 +120,32 @@ def test_a_motion_out_of_the_joint_limits_is_a_violation() -> None:
     violation = check_motion(_world(), _timed(np.array([HOME, beyond])), resolution_rad=RESOLUTION, escape_radius_rad=0.1)
     assert violation is not None and violation.limit_violations and not violation.pairs
     assert "panda_joint4" in violation.limit_violations[0]
+
+
+def test_on_the_lines_the_check_asks_about_the_planners_states() -> None:
+    path = np.array([HOME, HOME + [0.5, 0.1, 0, 0, 0, 0, 0], HOME + [0.5, 0.1, 0.3, 0, 0, 0, 0]])
+    on_line = path[0] + 0.37 * (path[1] - path[0])
+    off_line = on_line + 0.01
+    moved = on_plan_samples(np.array([on_line, off_line]), path, RESOLUTION)
+    steps = 25  # ceil(0.5 / 0.02)
+    np.testing.assert_allclose(moved[0], path[0] + round(0.37 * steps) / steps * (path[1] - path[0]), atol=1e-12)
+    np.testing.assert_array_equal(moved[1], off_line)
+
+
+def test_a_path_the_planner_accepts_is_accepted_on_the_same_world() -> None:
+    """Whatever grazes lie between the planner's states, a rest-to-rest motion along a path that
+    passes the planner's check passes the executor's (random boxes around random paths)."""
+    rng = np.random.default_rng(5)
+    checked = 0
+    for _ in range(12):
+        centers = rng.uniform([0.2, -0.5, 0.1], [0.7, 0.5, 0.8], size=(6, 3))
+        world = _world(*(SceneObject(name=f"b{i}", type="box", position_m=tuple(c), size_m=(0.06, 0.06, 0.06))
+                         for i, c in enumerate(centers)))
+        path = np.vstack([HOME, HOME + rng.uniform(-0.6, 0.6, 7), HOME + rng.uniform(-0.6, 0.6, 7)])
+        path = np.clip(path, ROBOT.lower_limits_rad, ROBOT.upper_limits_rad)
+        if not world.path_valid(path, RESOLUTION):
+            continue
+        checked += 1
+        trajectory = _timed(path, deviation=0.0)
+        assert check_motion(world, trajectory, resolution_rad=RESOLUTION, escape_radius_rad=0.1, path_rad=path) is None
+    assert checked >= 3
