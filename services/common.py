@@ -24,6 +24,7 @@ from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.messages import ErrorReply
 from robonav.services.config import LimitsConfig, RobonavConfig, ZenohConfig, load_config
 from robonav.services.keys import Keys
+from robonav.services.stack.secrets import check_example_passwords
 
 log = logging.getLogger("robonav")
 M = TypeVar("M", bound=Message)
@@ -183,11 +184,13 @@ def guarded_queryable(handler: Callable[[zenoh.Query], None], name: str) -> Call
 
 
 def guarded_subscriber(handler: Callable[[zenoh.Sample], None], name: str) -> Callable[[zenoh.Sample], None]:
-    """Wrap a subscriber callback: bad samples are counted and logged once per kind, never raised."""
+    """Wrap a subscriber callback: bad samples (oversized ones before decoding, see
+    `check_publication_size`) are counted and logged once per kind, never raised."""
     seen: dict[str, int] = {}
 
     def wrapped(sample: zenoh.Sample) -> None:
         try:
+            check_publication_size(sample)
             handler(sample)
         except Exception as exc:
             kind = exc.code.value if isinstance(exc, ProtocolError) else type(exc).__name__
@@ -205,9 +208,30 @@ def guarded_subscriber(handler: Callable[[zenoh.Sample], None], name: str) -> Ca
 _max_request_bytes = LimitsConfig().max_request_bytes
 
 
+_max_publication_bytes = LimitsConfig().max_publication_bytes
+
+
 def set_max_request_bytes(limit: int) -> None:
     global _max_request_bytes
     _max_request_bytes = limit
+
+
+def set_max_publication_bytes(limit: int) -> None:
+    global _max_publication_bytes
+    _max_publication_bytes = limit
+
+
+def check_publication_size(sample: zenoh.Sample) -> None:
+    """Raise PAYLOAD_TOO_LARGE for a sample above `limits.max_publication_bytes`, before anything decodes it.
+
+    Raises:
+        ProtocolError: PAYLOAD_TOO_LARGE.
+    """
+    size = len(sample.payload)
+    if size > _max_publication_bytes:
+        raise ProtocolError(ErrorCode.PAYLOAD_TOO_LARGE,
+                            f"sample on {sample.key_expr} is {size} bytes, more than this service accepts "
+                            f"({_max_publication_bytes})", {"size_bytes": size, "limit_bytes": _max_publication_bytes})
 
 
 def decode_request(query: zenoh.Query, cls: type[M]) -> M:
@@ -277,8 +301,6 @@ def parse_args_and_config(prog: str, description: str, argv: list[str] | None,
         if args.zenoh_config is not None:
             cfg = dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config))
         to_zenoh_config(cfg.zenoh)  # a bad Zenoh config file is a config error, not a crash later
-        from robonav.services.stack.secrets import check_example_passwords
-
         check_example_passwords(cfg.zenoh.config_file)
         return args, cfg
     except ConfigError as exc:
@@ -297,6 +319,7 @@ def run_service(name: str, argv: list[str] | None, build: Callable[[RobonavConfi
     _, cfg = loaded
     stop = stop_on_signals(signal.SIGINT, signal.SIGTERM)
     set_max_request_bytes(cfg.limits.max_request_bytes)
+    set_max_publication_bytes(cfg.limits.max_publication_bytes)
     session = open_session_waiting(cfg.zenoh, stop, name)
     if session is None:
         log.info("%s: stopped before the router answered", name)

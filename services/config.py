@@ -59,10 +59,13 @@ class LimitsConfig:
     most objects (world and attached) in the planner's scene."""
     max_mesh_size: int = 100_000
     """Most vertices, and most triangles, of one mesh object."""
+    max_publication_bytes: int = 64 * 1024 * 1024
+    """Published samples larger than this are dropped (and counted) by every subscribing
+    service before decoding [bytes]; a 1280x720 cloud is about 11 MB."""
 
     def __post_init__(self) -> None:
         for name in ("max_request_bytes", "max_queued_requests", "max_planning_attempts", "max_goals", "max_waypoints",
-                     "max_replan_attempts", "max_scene_objects", "max_mesh_size"):
+                     "max_replan_attempts", "max_scene_objects", "max_mesh_size", "max_publication_bytes"):
             value = getattr(self, name)
             require(value > 0, f"limits.{name} must be > 0, got {value}")
         require(self.max_planning_time_s > 0, f"limits.max_planning_time_s must be > 0, got {self.max_planning_time_s}")

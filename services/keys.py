@@ -58,6 +58,11 @@ class Keys:
         return f"{self.root}/planner/scene"
 
     @property
+    def scene_state(self) -> str:
+        """The planner's whole scene, latched, on every change (the executor checks executes against it)."""
+        return f"{self.root}/planner/scene_state"
+
+    @property
     def execute(self) -> str:
         return f"{self.root}/executor/execute"
 

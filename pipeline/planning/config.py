@@ -42,9 +42,13 @@ class PlannerConfig:
     seed: int = 0
     """Seeds OMPL's sampler once per planner process and the shortcutting per request."""
     occupancy_max_age_s: float = 10.0
-    """A plan request fails with OCCUPANCY_STALE when the newest map is older than this [s]."""
+    """A plan request fails with OCCUPANCY_STALE when the newest map's stamp (its newest frame)
+    is further than this from the planner's clock [s]."""
     require_occupancy: bool = True
     """Refuse to plan (OCCUPANCY_MISSING) until a first occupancy map arrived."""
+    occupancy_min_frames: int = 3
+    """Refuse to plan (OCCUPANCY_INCOMPLETE) until every configured camera has integrated this
+    many frames into the map since the last `perception/clear` or perception start; 0: off."""
     ik_restarts: int = 20
     """Random restarts of inverse kinematics for a pose goal."""
     ik_solutions: int = 4
@@ -86,3 +90,4 @@ class PlannerConfig:
                 f"planner.lattice_resolution_rad must be > 0, got {self.lattice_resolution_rad}")
         require(self.first_map_wait_s >= 0, f"planner.first_map_wait_s must be >= 0, got {self.first_map_wait_s}")
         require(self.occupancy_max_age_s > 0, f"planner.occupancy_max_age_s must be > 0, got {self.occupancy_max_age_s}")
+        require(self.occupancy_min_frames >= 0, f"planner.occupancy_min_frames must be >= 0, got {self.occupancy_min_frames}")

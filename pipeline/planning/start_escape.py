@@ -58,7 +58,7 @@ def escape_start(world: CollisionWorld, start: FloatArray, is_valid: StateValidF
     low = np.maximum(start - radius_rad, robot.lower_limits_rad)
     high = np.minimum(start + radius_rad, robot.upper_limits_rad)
     candidates = rng.uniform(low, high, size=(samples, start.shape[0]))
-    touches = _touching_rule(world, np.vstack([start, candidates]))
+    touches = way_out_touches(world, np.vstack([start, candidates]))
     if touches(start):
         return None
     # Closest first: the smallest move out of the padding is the one least likely to meet anything.
@@ -72,7 +72,7 @@ def escape_start(world: CollisionWorld, start: FloatArray, is_valid: StateValidF
     return None
 
 
-def _touching_rule(world: CollisionWorld, states: FloatArray) -> StateValidFn:
+def way_out_touches(world: CollisionWorld, states: FloatArray) -> StateValidFn:
     """Whether a state on the way out touches what it must not (see the module docstring)."""
     seen = world.seen_voxels_m
     if seen is None:

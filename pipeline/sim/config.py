@@ -51,6 +51,14 @@ class SimConfig:
     """Scripted obstacle motions, armed when the sim starts (see `ObjectMotion`)."""
     clutter: ClutterConfig = field(default_factory=ClutterConfig)
     """Procedural scenes (`robonav campaign`): the table and what is put on it."""
+    setpoint_timeout_s: float = 0.2
+    """Setpoint watchdog (Franka's communication watchdog, a UR's RTDE watchdog): after this long
+    without a followed setpoint while the commanded motion moves, the arm brakes to rest on its
+    own [s]. Until then the joints keep the last setpoint's velocity (a first-order hold)."""
+    setpoint_slack_s: float = 0.02
+    """Timing slack of the setpoint acceptance rule (`pipeline/sim/driver.py`): a setpoint may
+    differ from the continuation of the last one by what the arm's limits allow in this much
+    time [s]."""
 
     def __post_init__(self) -> None:
         require(math.isfinite(self.physics_rate_hz) and self.physics_rate_hz > 0,
@@ -60,6 +68,10 @@ class SimConfig:
         require(self.joint_state_rate_hz <= self.physics_rate_hz,
                 f"sim.joint_state_rate_hz ({self.joint_state_rate_hz}) must not exceed "
                 f"sim.physics_rate_hz ({self.physics_rate_hz}): states only change once per physics step")
+        require(math.isfinite(self.setpoint_timeout_s) and self.setpoint_timeout_s > 0,
+                f"sim.setpoint_timeout_s must be a finite value > 0, got {self.setpoint_timeout_s}")
+        require(math.isfinite(self.setpoint_slack_s) and self.setpoint_slack_s >= 0,
+                f"sim.setpoint_slack_s must be a finite value >= 0, got {self.setpoint_slack_s}")
         require(self.follow in ("dynamic", "kinematic"),
                 f"sim.follow must be 'dynamic' or 'kinematic', got {self.follow!r}")
         names = [obj.name for obj in self.objects]

@@ -37,10 +37,6 @@ _VELOCITY_GAIN = 1.0
 # tracking into a slow ramp; the sim arm stands in for a stiff, well-tuned joint controller.
 _MOTOR_FORCE_SCALE = 10.0
 _MIN_MOTOR_FORCE = 50.0
-# Setpoints arrive slower than physics steps (100 vs 240 Hz); between them the dynamic motors
-# chase the setpoint extrapolated along its velocity (a first-order hold) instead of being pulled
-# back to a stale position. Capped so a silent executor cannot drive the arm away indefinitely.
-_MAX_EXTRAPOLATION_S = 0.05
 _OBSTACLE_RGBA = ((0.85, 0.33, 0.10, 1.0), (0.00, 0.45, 0.74, 1.0), (0.47, 0.67, 0.19, 1.0),
                   (0.93, 0.69, 0.13, 1.0), (0.49, 0.18, 0.56, 1.0), (0.30, 0.75, 0.93, 1.0))
 
@@ -136,6 +132,8 @@ class SimWorld:
             return max(_MOTOR_FORCE_SCALE * movable[name][3], _MIN_MOTOR_FORCE)
 
         self._joint_ids = [movable[name][0] for name in config.joint_names]
+        self._joint_limits = (np.array([movable[name][1] for name in config.joint_names], dtype=np.float64),
+                              np.array([movable[name][2] for name in config.joint_names], dtype=np.float64))
         self._joint_forces = [motor_force(name) for name in config.joint_names]
         self._target_q = np.asarray(config.home_position_rad, dtype=np.float64)
         self._target_qd = np.zeros(len(self._joint_ids))
@@ -164,12 +162,20 @@ class SimWorld:
         """Duration of one `step()` [s]."""
         return self._dt_s
 
+    @property
+    def joint_limits(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """(lower (n,), upper (n,)) position limits of the planning joints, as the URDF gives them."""
+        return self._joint_limits[0].copy(), self._joint_limits[1].copy()
+
     def set_joint_target(self, q_rad: npt.ArrayLike, qd_rad_s: npt.ArrayLike | None = None) -> None:
         """Set the setpoint the arm follows from the next `step()` on.
 
         `(q, qd)` is the desired state now. "kinematic" worlds jump to exactly `q`, `qd` on each
         step. "dynamic" worlds chase `q + qd * (time since this call)` with target velocity `qd`
-        until the next call, for at most 50 ms, after which they hold the extrapolated position.
+        until the next call (setpoints come slower than physics steps; a first-order hold keeps
+        the arm from being pulled back to a stale position), for at most
+        `sim.setpoint_timeout_s`, after which they hold the extrapolated position (the sim
+        service's driver brakes smoothly before that, `pipeline/sim/driver.py`).
 
         Args:
             q_rad: (n,) joint positions in `robot.joint_names` order [rad or m].
@@ -380,14 +386,20 @@ class SimWorld:
             raise RuntimeError("SimWorld is closed")
         return self._client
 
-    def _apply_motor_targets(self) -> None:
+    def commanded_target(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """(q (n,), qd (n,)) the joints are driven toward at this step (see `set_joint_target`)."""
+        if self._sim.follow == "kinematic":
+            return self._target_q.copy(), self._target_qd.copy()
         # pybullet's motor compares the target with the state at the start of the step, so the
         # target is the setpoint advanced to now.
         elapsed_s = (self._steps - self._target_step) * self._dt_s
-        if elapsed_s <= _MAX_EXTRAPOLATION_S:
-            q, qd = self._target_q + self._target_qd * elapsed_s, self._target_qd
-        else:
-            q, qd = self._target_q + self._target_qd * _MAX_EXTRAPOLATION_S, np.zeros_like(self._target_qd)
+        cap_s = self._sim.setpoint_timeout_s
+        if elapsed_s <= cap_s:
+            return self._target_q + self._target_qd * elapsed_s, self._target_qd.copy()
+        return self._target_q + self._target_qd * cap_s, np.zeros_like(self._target_qd)
+
+    def _apply_motor_targets(self) -> None:
+        q, qd = self.commanded_target()
         n = len(self._joint_ids)
         p.setJointMotorControlArray(
             self._robot, self._joint_ids, p.POSITION_CONTROL,

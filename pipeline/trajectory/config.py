@@ -45,6 +45,12 @@ class ExecutorConfig:
     command_lead_s: float = 0.01
     """A new trajectory (execute, stop, replan) takes over this long after the command: the time
     to sample it and hand it to the setpoint stream's process, so the switch is exact [s]."""
+    require_scene: bool = True
+    """Refuse an execute (SCENE_MISSING) while no planner's scene (`planner/scene_state`) has
+    arrived: the executor checks every motion against the planner's objects, and without them
+    it cannot. False checks against the occupancy map alone (a cell without a planner)."""
+    scene_wait_s: float = 1.0
+    """How long an execute waits for a first planner scene (a planner that just started) [s]."""
     monitor_path: bool = True
     """Re-check the rest of an executing path against every new occupancy map; a new obstacle on
     it stops the arm (and replans when the request asks for it)."""
@@ -85,3 +91,4 @@ class ExecutorConfig:
         require(self.replan_timeout_s > 0, f"executor.replan_timeout_s must be > 0, got {self.replan_timeout_s}")
         require(self.replan_delay_s >= 0, f"executor.replan_delay_s must be >= 0, got {self.replan_delay_s}")
         require(self.replan_settle_s >= 0, f"executor.replan_settle_s must be >= 0, got {self.replan_settle_s}")
+        require(self.scene_wait_s >= 0, f"executor.scene_wait_s must be >= 0, got {self.scene_wait_s}")

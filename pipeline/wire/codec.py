@@ -8,7 +8,9 @@ decodes them without this package. The messages themselves are in `messages.py`;
 
 Decoding is strict: unknown keys, missing keys, wrong types, wrong shapes and non-finite
 numbers (where a field forbids them) raise `ProtocolError` carrying an `ErrorCode`, which
-services turn into a structured error reply.
+services turn into a structured error reply. It is also bounded: nesting depth, collection
+lengths and array sizes are checked before anything is built from them, so no payload makes
+a decoder allocate more than the payload itself or raise anything but `ProtocolError`.
 """
 from __future__ import annotations
 
@@ -26,6 +28,12 @@ import numpy as np
 from robonav.pipeline.wire.codes import ErrorCode
 
 SCHEMA_VERSION = 1
+MAX_DEPTH = 16
+"""Deepest nesting of maps and lists a payload may have (the deepest message needs 6)."""
+MAX_COLLECTION_LENGTH = 1_000_000
+"""Most entries of one msgpack map or list (arrays travel as bin, not as lists)."""
+MAX_ARRAY_ELEMENTS = 1 << 31
+"""Most elements of one array map, whatever its data length says."""
 
 M = TypeVar("M", bound="Message")
 
@@ -95,6 +103,11 @@ class Message:
         version = obj.pop("v", None)
         if version is None:
             raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{cls.__name__}: missing schema version 'v'", {"key": "v"})
+        # True == 1 and 1.0 == 1 in Python: the type is checked first, or they would pass as version 1.
+        if isinstance(version, bool) or not isinstance(version, int):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE,
+                                f"{cls.__name__}: schema version 'v' must be an integer, got {type(version).__name__}",
+                                {"key": "v"})
         if version != SCHEMA_VERSION:
             raise ProtocolError(ErrorCode.UNSUPPORTED_VERSION,
                                 f"{cls.__name__}: schema version {version!r} is not supported (this side speaks {SCHEMA_VERSION})",
@@ -129,7 +142,9 @@ class Message:
             if prefix and "key" in exc.details:  # a nested message names its own keys: make them full paths
                 exc.details["key"] = prefix + str(exc.details["key"])
             raise
-        except (ValueError, TypeError) as exc:
+        except (ValueError, TypeError, ArithmeticError, IndexError, KeyError) as exc:
+            # Checks in a message's __post_init__ meet values of every size and sign: whatever
+            # they raise on a decodable but unusable value is the sender's error, not ours.
             details = {"key": prefix.rstrip(".")} if prefix else {}
             where = f" (at '{prefix.rstrip('.')}')" if prefix else ""
             raise ProtocolError(ErrorCode.INVALID_REQUEST, f"{cls.__name__}{where}: {exc}", details) from exc
@@ -140,11 +155,32 @@ class Message:
 
 
 def unpack(payload: bytes) -> Any:
-    """msgpack bytes → Python objects; garbage raises MALFORMED_MESSAGE."""
+    """msgpack bytes → Python objects; garbage, and nesting or collections beyond the bounds
+    (`MAX_DEPTH`, `MAX_COLLECTION_LENGTH`), raise MALFORMED_MESSAGE."""
     try:
-        return msgpack.unpackb(payload, raw=False, strict_map_key=True)
+        # msgpack checks the lengths before it allocates (and its own stack stops ~1000 levels deep).
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, max_array_len=MAX_COLLECTION_LENGTH,
+                              max_map_len=MAX_COLLECTION_LENGTH)
     except Exception as exc:  # msgpack raises several unrelated types for garbage
         raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"payload is not valid msgpack: {exc}") from exc
+    _check_depth(obj)
+    return obj
+
+
+def _check_depth(obj: Any) -> None:
+    """MALFORMED_MESSAGE when maps and lists nest deeper than MAX_DEPTH (iterative: no recursion to exhaust)."""
+    stack = [(obj, 1)]
+    while stack:
+        value, depth = stack.pop()
+        if isinstance(value, dict):
+            children: Any = value.values()
+        elif isinstance(value, list):
+            children = value
+        else:
+            continue
+        if depth > MAX_DEPTH:
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"payload nests maps and lists deeper than {MAX_DEPTH} levels")
+        stack.extend((child, depth + 1) for child in children if isinstance(child, (dict, list)))
 
 
 def encode_array(array: np.ndarray, dtype: str) -> dict[str, Any]:
@@ -162,11 +198,13 @@ def decode_array(obj: Any, spec: ArraySpec, *, key: str) -> np.ndarray:
         raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"'{key}' must be an array map {{dtype, shape, data}}", {"key": key})
     dtype, shape, data = obj["dtype"], obj["shape"], obj["data"]
     family = _FLOAT_DTYPES if spec.dtype in _FLOAT_DTYPES else _INT_DTYPES
-    if dtype not in family:
+    if not isinstance(dtype, str) or dtype not in family:
         raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"'{key}': dtype {dtype!r} not accepted (use one of {sorted(family)})",
                             {"key": key, "dtype": dtype})
-    if not isinstance(shape, list) or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape):
-        raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"'{key}': shape must be a list of non-negative ints", {"key": key})
+    if not isinstance(shape, list) or len(shape) > MAX_DEPTH or \
+            not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_ARRAY_ELEMENTS for s in shape):
+        raise ProtocolError(ErrorCode.MALFORMED_MESSAGE,
+                            f"'{key}': shape must be a list of ints in [0, {MAX_ARRAY_ELEMENTS}]", {"key": key})
     if not isinstance(data, bytes):
         raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"'{key}': data must be bytes", {"key": key})
     if len(shape) != len(spec.shape) or any(e is not None and not isinstance(e, str) and e != s for e, s in zip(spec.shape, shape)):
@@ -174,7 +212,12 @@ def decode_array(obj: Any, spec: ArraySpec, *, key: str) -> np.ndarray:
         raise ProtocolError(ErrorCode.INVALID_REQUEST, f"'{key}': shape {shape} does not match expected {want}",
                             {"key": key, "shape": shape, "expected": want})
     np_dtype = np.dtype(dtype)
-    expected_bytes = int(np.prod(shape, dtype=np.int64)) * np_dtype.itemsize
+    # Python ints: a product of huge dimensions must not wrap around (int64) into a small size.
+    elements = math.prod(shape)
+    if elements > MAX_ARRAY_ELEMENTS:
+        raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"'{key}': shape {shape} has more than {MAX_ARRAY_ELEMENTS} elements",
+                            {"key": key})
+    expected_bytes = elements * np_dtype.itemsize
     if len(data) != expected_bytes:
         raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"'{key}': {len(data)} data bytes, shape {shape} of {dtype} needs {expected_bytes}",
                             {"key": key})
@@ -211,7 +254,11 @@ def _decode_value(tp: Any, value: Any, *, key: str, owner: str) -> Any:
         if set(value) - names or names - set(value):
             raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must have exactly the keys {sorted(names)}", {"key": key})
         sub_hints = get_type_hints(tp)
-        return tp(**{k: _decode_value(sub_hints[k], v, key=f"{key}.{k}", owner=owner) for k, v in value.items()})
+        fields = {k: _decode_value(sub_hints[k], v, key=f"{key}.{k}", owner=owner) for k, v in value.items()}
+        try:
+            return tp(**fields)
+        except (ValueError, TypeError, ArithmeticError) as exc:
+            raise ProtocolError(ErrorCode.INVALID_REQUEST, f"{owner}: '{key}': {exc}", {"key": key}) from exc
     if origin is tuple:
         if not isinstance(value, list):
             raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a list", {"key": key})
@@ -219,6 +266,13 @@ def _decode_value(tp: Any, value: Any, *, key: str, owner: str) -> Any:
     if origin is dict or tp is dict:
         if not isinstance(value, dict):
             raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a map", {"key": key})
+        key_type, value_type = args if len(args) == 2 else (Any, Any)
+        # Keys travel as strings (msgpack maps here have string keys); a message that wants
+        # other keys (label numbers) converts them itself.
+        if key_type is str and not all(isinstance(k, str) for k in value):
+            raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must have string keys", {"key": key})
+        if value_type in (int, float, str, bool):
+            return {k: _decode_value(value_type, v, key=f"{key}.{k}", owner=owner) for k, v in value.items()}
         return dict(value)
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):

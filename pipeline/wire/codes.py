@@ -28,6 +28,9 @@ class ErrorCode(str, enum.Enum):
     """No start given and no joint state received yet."""
     OCCUPANCY_MISSING = "OCCUPANCY_MISSING"
     OCCUPANCY_STALE = "OCCUPANCY_STALE"
+    OCCUPANCY_INCOMPLETE = "OCCUPANCY_INCOMPLETE"
+    """The map is being rebuilt after a clear or a perception start: a camera has not yet
+    contributed the configured number of frames."""
     EXECUTOR_BUSY = "EXECUTOR_BUSY"
     """An execute request arrived while a trajectory is streaming or stopping."""
     INTERNAL_ERROR = "INTERNAL_ERROR"
@@ -35,6 +38,11 @@ class ErrorCode(str, enum.Enum):
     """The request payload is larger than the service's `limits.max_request_bytes`."""
     BUSY = "BUSY"
     """Every worker of the service is busy and its queue of waiting requests is full."""
+    PATH_IN_COLLISION = "PATH_IN_COLLISION"
+    """An execute's timed motion leaves the joint limits or collides with the map, the planner's
+    scene objects or itself (MoveIt's plan-execution validity check)."""
+    SCENE_MISSING = "SCENE_MISSING"
+    """The executor holds no planning scene from a planner (`planner/scene_state`) to check an execute against."""
     # The executor reports these in `executor/status` (`error_code`) when it stopped a motion.
     JOINT_STATE_STALE = "JOINT_STATE_STALE"
     """No joint state for longer than the watchdog timeout while moving."""

@@ -124,6 +124,13 @@ class Occupancy(Message):
     """(N, 3) centers of occupied voxels before inflation [m]."""
     seq: int = 0
     frame_id: str = "world"
+    camera_frames: dict[str, int] | None = None
+    """Camera id -> frames integrated since the last clear or perception start, for every
+    configured camera (0 for one not heard from); absent from older producers."""
+
+    def __post_init__(self) -> None:
+        if self.camera_frames is not None and any(n < 0 for n in self.camera_frames.values()):
+            raise ValueError(f"Occupancy: camera_frames must be >= 0, got {self.camera_frames}")
 
 
 @dataclass(frozen=True)
@@ -173,14 +180,17 @@ class PerceptionStatusResponse(Message):
     published: int
     """Occupancy maps published."""
     dropped: dict[str, int]
-    """Frames not integrated, by reason: bad_message, unknown_camera, no_joint_state, future_stamp,
-    out_of_order, jumped_back, before_clear, empty, stale (replaced by a newer frame before it was
-    processed), ...; joint states not kept: joint_state_incomplete, joint_state_future_stamp,
-    joint_state_out_of_order, joint_state_jumped_back."""
+    """Frames not integrated, by reason: bad_message, too_large, unknown_camera, no_joint_state,
+    future_stamp, out_of_order, jumped_back, no_intrinsics, before_clear, empty, unsupported,
+    stale (replaced by a newer frame before it was processed), internal_error; joint states not
+    kept: joint_state_incomplete, joint_state_future_stamp, joint_state_out_of_order,
+    joint_state_jumped_back."""
     occupied_voxels: int
     stage_ms: dict[str, float]
     """Wall time per stage of the last frame [ms]."""
     ok: bool = True
+    camera_frames: dict[str, int] | None = None
+    """Camera id -> frames integrated since the last clear or start (as in `Occupancy`)."""
 
 
 @dataclass(frozen=True)
@@ -307,9 +317,9 @@ class ExecuteRequest(Message):
     replan_attempts: int | None = None
     """Plans tried per block before giving up; default executor.replan_attempts."""
     occupancy_stamp: float | None = None
-    """`PlanResponse.occupancy_stamp` of the plan this path came from: the path monitor then
-    watches every voxel that map lacked. Without it, the newest map at acceptance is taken as
-    the one planned on, and voxels that arrived while the plan was in flight go unwatched."""
+    """`PlanResponse.occupancy_stamp` of the plan this path came from. Accepted for compatibility,
+    no longer used: the executor checks the motion against its own newest map and watches every
+    voxel not in that map, whatever map the plan saw."""
 
     def __post_init__(self) -> None:
         if self.path.shape[0] < 1:
@@ -330,6 +340,10 @@ class ExecuteResponse(Message):
     duration_s: float
     waypoint_count: int
     ok: bool = True
+    check_ms: float | None = None
+    """Time the executor took to time-parameterize and check the motion [ms]."""
+    checked_samples: int | None = None
+    """States of the motion checked against the map and the scene."""
 
 
 @dataclass(frozen=True)
@@ -616,6 +630,33 @@ class SceneResponse(Message):
 
 
 @dataclass(frozen=True)
+class AttachedObjectSpec(Message):
+    """One object fixed to a robot link in a `planner/scene_state` publication; travels nested, without `v`."""
+
+    link: str
+    """The robot link it moves with."""
+    object: SceneObjectSpec
+    """The object posed in `link`'s frame (link_from_object; `frame_id` is the link)."""
+    touch_links: tuple[str, ...] = ()
+    """Robot links it may touch besides `link`."""
+
+
+@dataclass(frozen=True)
+class PlanningSceneState(Message):
+    """`planner/scene_state` (latched pub): the planner's whole collision scene, sent when the
+    planner starts and after every change; what the executor checks an execute against."""
+
+    stamp: float
+    """When the scene took this form [s]."""
+    revision: int
+    """As in `SceneResponse`: +1 for every request that changed the scene (0 for a fresh planner)."""
+    objects: tuple[SceneObjectSpec, ...] = ()
+    """World objects, complete (mesh arrays included), posed in the world frame."""
+    attached: tuple[AttachedObjectSpec, ...] = ()
+    """Objects fixed to robot links."""
+
+
+@dataclass(frozen=True)
 class ContactEvent(Message):
     """`sim/contacts/events` (pub): a robot link started or stopped touching an obstacle (ground truth)."""
 
@@ -802,6 +843,19 @@ class SimStatsResponse(Message):
     """Longest gap between two published joint states [ms]."""
     cameras: tuple[CameraStats, ...] = ()
     ok: bool = True
+    driver_state: str | None = None
+    """How the arm takes setpoints now: following, braking (on its own) or holding."""
+    setpoints_followed: int | None = None
+    """Setpoints followed since the sim started (not reset with the window)."""
+    setpoints_rejected: dict[str, int] | None = None
+    """Setpoints not followed since the sim started, by reason: joint_limits, velocity,
+    acceleration, jump, out_of_order, bad_message (`pipeline/sim/driver.py`)."""
+    setpoint_timeouts: int | None = None
+    """Times setpoints stopped arriving mid-motion and the arm braked on its own."""
+    brakes: int | None = None
+    """Times the arm braked on its own, for any reason."""
+    last_rejection: str | None = None
+    """The last setpoint rejection in words (reason: detail)."""
 
 
 SERVICE_PROCESS_STATES: tuple[str, ...] = ("running", "restarting", "stopped")
@@ -863,5 +917,5 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     JointState, PointCloud, Occupancy, PlanRequest, PlanResponse, ExecuteRequest, ExecuteResponse,
     StopRequest, StopResponse, Setpoint, ExecutorStatus, ContactsRequest, ContactsResponse, ErrorReply,
     SceneRequest, SceneResponse, DepthImage, ContactEvent, SimObjectsRequest, SimObjectsResponse, SimStatsRequest,
-    SimStatsResponse, StackStatusRequest, StackStatusResponse,
+    SimStatsResponse, PlanningSceneState, StackStatusRequest, StackStatusResponse,
 )

@@ -220,7 +220,10 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
         s.bind(("127.0.0.1", 0))
         endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
     router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
-    cfg = dataclasses.replace(cfg, zenoh=ZenohConfig(connect=(endpoint,)))
+    # No planner runs here: every execute is checked against the map alone (and needs none without perception).
+    cfg = dataclasses.replace(cfg, zenoh=ZenohConfig(connect=(endpoint,)),
+                              executor=dataclasses.replace(cfg.executor, require_scene=False),
+                              planner=dataclasses.replace(cfg.planner, require_occupancy=perception_hz > 0))
     spawn = multiprocessing.get_context("spawn")
     executor_conn, child_conn = spawn.Pipe()
     # Not a daemon: the executor starts its setpoint stream as a child process.

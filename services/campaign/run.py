@@ -38,6 +38,7 @@ from tqdm import tqdm
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.evaluation.mbm import parse_mbm
 from robonav.pipeline.planning.ompl_planners import seed_ompl_once
+from robonav.pipeline.perception.map_readiness import map_complete
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.sim.scenes import Scene, clutter_scene, mbm_scenes, scene_from_mapping
 from robonav.pipeline.wire.messages import ErrorReply, SimStatsRequest, SimStatsResponse
@@ -272,9 +273,10 @@ def run_campaign(args: argparse.Namespace, cfg: RobonavConfig, config_path: Path
             missing = client.wait_for_services(SERVICES, SERVICE_START_TIMEOUT_S)
             if missing:
                 raise RuntimeError(f"services not up: {sorted(missing)}; exited: {stack.dead()}")
-            if not client.wait_for(lambda: client.occupancy is not None and client.joint_state is not None,
-                                   SERVICE_START_TIMEOUT_S):
-                raise RuntimeError("no occupancy map or joint state")
+            if not client.wait_for(lambda: client.joint_state is not None and client.occupancy is not None and map_complete(
+                    client.occupancy.camera_frames, [c.camera_id for c in cfg.cameras], cfg.planner.occupancy_min_frames),
+                    SERVICE_START_TIMEOUT_S):
+                raise RuntimeError("no complete occupancy map or no joint state")
             runner = SceneRunner(cfg, client, goals_per_scene=args.goals_per_scene, guard=not args.no_guard,
                                  velocity_scaling=args.velocity_scaling, seed=args.seed,
                                  moving_speed_factor=args.moving_speed)

@@ -22,21 +22,20 @@ from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import Intruder, perceivable_objects, sample_goal
 from robonav.pipeline.sim.scenes import Scene
-from robonav.pipeline.trajectory.path_guard import PathGuard, map_settled
+from robonav.pipeline.trajectory.path_guard import PathGuard
 from robonav.pipeline.wire.codes import ErrorCode, ExecutionState
 from robonav.pipeline.wire.messages import (
     ErrorReply,
     ExecuteResponse,
     ObjectMotionSpec,
     Occupancy,
-    PerceptionClearRequest,
-    PerceptionClearResponse,
     PlanResponse,
     SimObjectsRequest,
     SimObjectsResponse,
 )
 from robonav.services.campaign.intruder import INTRUDER_SLIDE_S, IntruderPlacer
-from robonav.services.client import QueryFailed, RobonavClient, trajectory_outcome
+from robonav.services.campaign.maps import CampaignMaps
+from robonav.services.client import RobonavClient, trajectory_outcome
 from robonav.services.config import RobonavConfig
 from robonav.services.planner.scene_specs import object_spec
 
@@ -45,9 +44,10 @@ log = logging.getLogger("robonav.campaign")
 MAX_ATTEMPTS = 4
 """Plans per goal: the first and up to three replans."""
 RETRYABLE = {"NO_SOLUTION", "START_IN_COLLISION", "GOAL_IN_COLLISION", "OCCUPANCY_STALE", "OCCUPANCY_MISSING",
-             "NO_JOINT_STATE", "INVALID_REQUEST", "BUSY"}
+             "OCCUPANCY_INCOMPLETE", "NO_JOINT_STATE", "INVALID_REQUEST", "PATH_IN_COLLISION", "BUSY"}
 """Plan or execute errors worth another try on a fresher map or state (INVALID_REQUEST: a path
-that no longer starts at the measured state; BUSY: every worker was busy)."""
+that no longer starts at the measured state; PATH_IN_COLLISION: the executor's newer map holds a
+voxel on the planned path; BUSY: every worker was busy)."""
 HOME_TOLERANCE_RAD = 0.05
 MAP_SETTLE_FRAMES = 3
 """Frames of the slowest camera integrated after a scene swap before planning in it."""
@@ -131,7 +131,7 @@ class SceneRunner:
         self._intruder_at_rest: SceneObject | None = None
         self._box_truth = CollisionWorld(self.robot, padding_m=0.0, broad_phase=False)
         self._placer = IntruderPlacer(cfg, self.robot, goal_margin_m=self.margin_m)
-        self.frame_period_s = max(1.0 / c.rate_hz for c in cfg.cameras)
+        self.maps = CampaignMaps(cfg, client)
         self.link = cfg.robot.end_effector_link
         self.plan_seq = 0
         self.resets = 0
@@ -151,40 +151,6 @@ class SceneRunner:
             raise RuntimeError(f"sim/objects {request.operation}: {reply.code}: {reply.message}")
         return reply
 
-    def _clear_map(self) -> None:
-        try:
-            reply = self.client.query(self.client.keys.perception_clear, PerceptionClearRequest(),
-                                      PerceptionClearResponse, 5.0)
-        except QueryFailed:
-            reply = None
-        if reply is None or isinstance(reply, ErrorReply):
-            log.warning("perception/clear failed (%s); old voxels fade as the camera sees through them", reply)
-
-    def _wait_fresh_map(self, after: float, frames: int = 1) -> bool:
-        """Wait for a map built from frames newer than `after` (+ frames - 1 frame periods)."""
-        threshold = after + (frames - 1) * self.frame_period_s
-        return self.client.wait_for(lambda: self.client.occupancy is not None and self.client.occupancy.stamp > threshold,
-                                    10.0 + frames * self.frame_period_s)
-
-    def _wait_settled_map(self, after: float) -> None:
-        """A map of frames newer than `after`, then newer maps until one adds (almost) nothing to
-        the one before, as the executor does before its own replans (`executor.replan_settle_s`)."""
-        if not self._wait_fresh_map(after):
-            return
-        previous = self.client.occupancy
-        assert previous is not None
-        deadline = time.monotonic() + self.cfg.executor.replan_settle_s
-        while time.monotonic() < deadline:
-            seq = previous.seq
-            if not self.client.wait_for(lambda: self.client.occupancy is not None and self.client.occupancy.seq != seq,
-                                        max(0.0, deadline - time.monotonic())):
-                return
-            current = self.client.occupancy
-            assert current is not None
-            if map_settled(previous.occupied_centers_m, current.occupied_centers_m, current.resolution_m):
-                return
-            previous = current
-
     def _q(self) -> np.ndarray:
         assert self.client.joint_state is not None
         return self.client.joint_state.position.copy()
@@ -198,14 +164,14 @@ class SceneRunner:
         if scene.start_rad is not None:
             self._objects(SimObjectsRequest(operation="set"))
             emptied = time.time()
-            self._clear_map()
-            self._wait_fresh_map(emptied, MAP_SETTLE_FRAMES)
+            self.maps.clear()
+            self.maps.wait_fresh(emptied, MAP_SETTLE_FRAMES)
             if not self._move(np.asarray(scene.start_rad, float), GoalRecord(-1, -1, [], True, False)):
                 raise RuntimeError(f"scene {scene.name}: could not reach its start")
         self._objects(SimObjectsRequest(operation="set", objects=tuple(object_spec(o) for o in scene.objects)))
         swapped = time.time()
-        self._clear_map()
-        if not self._wait_fresh_map(swapped, MAP_SETTLE_FRAMES):
+        self.maps.clear()
+        if not self.maps.wait_fresh(swapped, MAP_SETTLE_FRAMES):
             raise RuntimeError("no occupancy map after the scene swap")
 
     def go_home(self) -> None:
@@ -218,8 +184,8 @@ class SceneRunner:
         log.warning("going home through an emptied scene")
         self._objects(SimObjectsRequest(operation="set"))
         emptied = time.time()
-        self._clear_map()
-        self._wait_fresh_map(emptied, MAP_SETTLE_FRAMES)
+        self.maps.clear()
+        self.maps.wait_fresh(emptied, MAP_SETTLE_FRAMES)
         if self._move(self.home, GoalRecord(-1, -1, [], True, False)):
             return
         # The world is empty in truth, so a straight joint-space move is safe whatever the map
@@ -343,7 +309,7 @@ class SceneRunner:
         for attempt in range(MAX_ATTEMPTS):
             if attempt > 0:
                 record.replans += 1
-                self._wait_settled_map(time.time())
+                self.maps.wait_settled(time.time())
             self.plan_seq += 1
             # The guard's baseline: the planner plans on this map or a newer one, and a voxel it
             # never saw must not hide in a baseline taken after the plan came back.

@@ -27,6 +27,7 @@ from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.trajectory.execution import ExecutionStateMachine, Limits
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.pipeline.trajectory.trajectory import JointTrajectory
+from robonav.pipeline.types import StateValidFn
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name, reorder_to_robot
@@ -50,6 +51,8 @@ from robonav.services.common import (
     run_service,
 )
 from robonav.services.config import RobonavConfig
+from robonav.services.executor.execute_check import ExecuteCheck
+from robonav.services.executor.maps import MapFeed
 from robonav.services.executor.path_monitor import Execution, PathMonitor
 from robonav.services.executor.setpoint_stream import SetpointStream, StreamStats
 from robonav.services.keys import Keys
@@ -106,9 +109,11 @@ class ExecutorNode(Node):
         # monitor warms its guard's compiled kernels too).
         home = self.robot.home_position_rad
         self._time_parameterize(np.vstack([home, home + 0.05, home + np.linspace(0.0, 0.1, len(home))]), None, None)
+        self.maps = MapFeed()
+        self._map_sub = declare_latched_subscriber(session, keys.occupancy, guarded_subscriber(self.maps.on_occupancy,
+                                                                                               "executor"))
+        self.check = ExecuteCheck(cfg, self.robot, session, self.maps)
         self.monitor = PathMonitor(self) if cfg.executor.monitor_path else None
-        self._map_sub = (declare_latched_subscriber(session, keys.occupancy, self.monitor.on_occupancy)
-                         if self.monitor is not None else None)
         if self.monitor is not None:
             self.monitor.start()
         # Hand-overs to the stream must happen within `command_lead_s`: a shorter switch interval
@@ -148,12 +153,18 @@ class ExecutorNode(Node):
             if violations:
                 raise ProtocolError(ErrorCode.OUT_OF_JOINT_LIMITS, f"path waypoint {i} is outside the joint limits: {'; '.join(violations)}",
                                     {"waypoint": i, "violations": violations})
-        self._check_start(path[0])
-        # The expensive part (corner blends) runs outside the lock, so streaming goes on meanwhile.
-        trajectory = self._time_parameterize(path, request.max_velocity_scaling_factor,
-                                             request.max_acceleration_scaling_factor)
+        measured, busy = self._check_start(path[0])
+        if not busy:
+            # An idle arm starts where it is, not where row 0 says (within start_tolerance_rad of
+            # it): a driver refuses a first setpoint away from its current state.
+            path = np.vstack([measured[None], path[1:]])
+        # The expensive part (timing, corner blends, the check) runs outside the lock, so
+        # streaming goes on meanwhile. `occupancy_stamp` is no longer needed: the motion is
+        # checked against the newest map, and the monitor watches every voxel not in that one.
+        checked = self.check.check(path, lambda valid: self._time_parameterize(
+            path, request.max_velocity_scaling_factor, request.max_acceleration_scaling_factor, valid))
+        trajectory = checked.trajectory
         trajectory_id = request.trajectory_id or uuid.uuid4().hex[:12]
-        baseline_map = self.monitor.baseline_map(request.occupancy_stamp) if self.monitor is not None else None
         with self._lock:
             switch_s = self._switch_time()
             commanded = self.machine.commanded_state(switch_s)
@@ -172,26 +183,29 @@ class ExecutorNode(Node):
                 trajectory_id, path, request.replan,
                 request.replan_attempts or self.cfg.executor.replan_attempts,
                 request.max_velocity_scaling_factor, request.max_acceleration_scaling_factor, self._generation,
-                baseline_map)
+                checked.occupancy)
             self._blocked_after_frame_s = self._blocked_stamp = None
-        log.info("executing %s: %d waypoints, %.2f s%s", trajectory_id, len(path), duration_s,
-                 " (preempted the running trajectory)" if preempted else "")
+        log.info("executing %s: %d waypoints, %.2f s, %d states checked in %.1f ms%s", trajectory_id, len(path),
+                 duration_s, checked.samples, checked.check_ms, " (preempted the running trajectory)" if preempted else "")
         self._path_pub.put(ExecutorPath(stamp=time.time(), trajectory_id=trajectory_id,
                                         joint_names=self.robot.joint_names, path=path, duration_s=duration_s).to_wire())
-        reply_ok(query, ExecuteResponse(trajectory_id=trajectory_id, duration_s=duration_s, waypoint_count=len(path)))
+        reply_ok(query, ExecuteResponse(trajectory_id=trajectory_id, duration_s=duration_s, waypoint_count=len(path),
+                                        check_ms=round(checked.check_ms, 3), checked_samples=checked.samples))
 
-    def _time_parameterize(self, path: np.ndarray, velocity_scaling: float | None,
-                           acceleration_scaling: float | None) -> JointTrajectory:
+    def _time_parameterize(self, path: np.ndarray, velocity_scaling: float | None, acceleration_scaling: float | None,
+                           state_valid: StateValidFn | None = None) -> JointTrajectory:
         return time_parameterize(
             path, max_velocity=self.robot.velocity_limits, max_acceleration=self.robot.acceleration_limits,
             max_jerk=self.robot.jerk_limits,
             velocity_scaling=velocity_scaling or self.cfg.executor.velocity_scaling,
             acceleration_scaling=acceleration_scaling or self.cfg.executor.acceleration_scaling,
-            max_path_deviation_rad=self.cfg.executor.max_path_deviation_rad,
+            max_path_deviation_rad=self.cfg.executor.max_path_deviation_rad, state_valid=state_valid,
+            check_step_rad=self.cfg.planner.edge_resolution_rad,
         )
 
-    def _check_start(self, start: np.ndarray) -> None:
-        """An idle arm must be where the path starts, and the watchdog must have a fresh joint state."""
+    def _check_start(self, start: np.ndarray) -> tuple[np.ndarray, bool]:
+        """An idle arm must be where the path starts, and the watchdog must have a fresh joint state.
+        Returns the measured position (n,) and whether a trajectory is streaming."""
         with self._lock:
             measured, age_s, busy = self._measured_q, time.monotonic() - self._measured_at_s, self.machine.busy
         if measured is None or age_s > self.cfg.executor.joint_state_timeout_s:
@@ -205,6 +219,7 @@ class ExecutorNode(Node):
                 raise ProtocolError(ErrorCode.INVALID_REQUEST,
                                     f"path starts {offset:.3f} rad from the measured joint state (tolerance {self.cfg.executor.start_tolerance_rad} rad)",
                                     {"offset_rad": offset})
+        return measured.copy(), busy
 
     def handle_stop(self, query: zenoh.Query) -> None:
         request = decode_request(query, StopRequest)
@@ -278,8 +293,8 @@ class ExecutorNode(Node):
         for q in self._queryables:
             q.undeclare()
         self._workers.close()
-        if self._map_sub is not None:
-            self._map_sub.undeclare()
+        self._map_sub.undeclare()
+        self.check.close()
         self._sub.undeclare()
         self._to_stream.put(None)
         self._feeder.join(timeout=5.0)

@@ -24,6 +24,7 @@ from robonav.pipeline.perception.maps.factory import make_occupancy_map
 from robonav.pipeline.perception.maps.protocol import FrameRejected
 from robonav.pipeline.perception.self_filter import perception_filters
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name
 from robonav.pipeline.wire.messages import (
     Clusters,
@@ -38,6 +39,7 @@ from robonav.pipeline.wire.messages import (
 )
 from robonav.services.common import (
     Node,
+    check_publication_size,
     declare_latched_publisher,
     decode_request,
     guarded_queryable,
@@ -128,6 +130,8 @@ class PerceptionNode(Node):
         self.cameras = {cam.camera_id: cam for cam in cfg.cameras}
         self.world_from_camera = {cam.camera_id: perceived_world_from_camera(cam) for cam in cfg.cameras}
         self.frames = 0
+        self.camera_frames = {cam.camera_id: 0 for cam in cfg.cameras}
+        """Frames integrated per camera since the last clear or the start: an empty map is not free space."""
         self.published = 0
         self.drops = Drops()
         self.last_stage_ms: dict[str, float] = {}
@@ -177,6 +181,11 @@ class PerceptionNode(Node):
     def on_frame(self, sample: zenoh.Sample) -> None:
         """Keep only the newest frame of each camera: a slow cycle skips frames, never queues them."""
         key = str(sample.key_expr)
+        try:
+            check_publication_size(sample)
+        except ProtocolError as exc:
+            self.drops.add("too_large", exc.message)
+            return
         with self._pending_lock:
             if key in self._pending:
                 self.drops.add("stale", f"a newer frame replaced an unprocessed one on {key}")
@@ -188,6 +197,7 @@ class PerceptionNode(Node):
         with self._map_lock:
             cleared = self.map.voxel_count
             self.map.clear()
+            self.camera_frames = dict.fromkeys(self.camera_frames, 0)
             # A frame taken before now (pending, or on its way) shows the world as it was: after
             # a scene change it would put the old objects back into the emptied map. A camera whose
             # clock is far from ours (a replay) gets the moment in its own clock.
@@ -202,9 +212,10 @@ class PerceptionNode(Node):
         decode_request(query, PerceptionStatusRequest)
         with self._map_lock:
             voxels = self.map.voxel_count
+            camera_frames = dict(self.camera_frames)
         reply_ok(query, PerceptionStatusResponse(frames=self.frames, published=self.published,
                                                  dropped=dict(self.drops.counts), occupied_voxels=voxels,
-                                                 stage_ms=dict(self.last_stage_ms)))
+                                                 stage_ms=dict(self.last_stage_ms), camera_frames=camera_frames))
 
     def _taken_before_clear(self, cloud: PointCloud | DepthImage) -> bool:
         """Whether the frame predates the last perception/clear (then counted as dropped)."""
@@ -247,6 +258,7 @@ class PerceptionNode(Node):
             except FrameRejected as exc:
                 self.drops.add(exc.reason, f"camera {cloud.camera_id!r}: {exc}")
                 return False
+            self.camera_frames[cloud.camera_id] += 1
         # The newest frame of any camera (not of all time: a camera whose clock went back moves it back).
         self._newest_stamp = max(self._last_stamp.values())
         self.frames += 1
@@ -279,9 +291,11 @@ class PerceptionNode(Node):
             binary = self.map.planning_binary()
             centers = self.map.occupied_centers_m().astype(np.float32)
             clusters = self._clusters() if self._clusters_due() else None
+            camera_frames = dict(self.camera_frames)
         self.published += 1
         self._pub.put(Occupancy(stamp=self._newest_stamp, resolution_m=self.cfg.perception.resolution_m,
-                                octomap_binary=binary, occupied_centers_m=centers, seq=self.published).to_wire())
+                                octomap_binary=binary, occupied_centers_m=centers, seq=self.published,
+                                camera_frames=camera_frames).to_wire())
         if clusters is not None:
             self._clusters_pub.put(clusters.to_wire())
         self.last_stage_ms["publish"] = (time.perf_counter() - t0) * 1e3

@@ -19,6 +19,7 @@ import numpy as np
 import zenoh
 
 from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.perception.map_readiness import occupancy_problem
 from robonav.pipeline.planning.motion_planner import PLANNERS, PlanProblem, PoseGoal
 from robonav.pipeline.planning.ompl_planners import seed_ompl_once
 from robonav.pipeline.planning.result import PlanStatus
@@ -30,6 +31,7 @@ from robonav.pipeline.wire.joint_order import missing_joints, positions_by_name,
 from robonav.pipeline.wire.messages import JointState, Occupancy, PlanRequest, PlanResponse
 from robonav.services.common import (
     Node,
+    declare_latched_publisher,
     declare_latched_subscriber,
     decode_request,
     guarded_queryable,
@@ -70,19 +72,23 @@ class PlannerNode(Node):
         self._joint_state: JointState | None = None
         self._newest_map: Occupancy | None = None
         self._map_received_monotonic: float | None = None
-        self._first_map = threading.Event()
+        self._map_arrived = threading.Condition(self._state_lock)
+        """Notified with every map: a plan waits on it for a first (or complete) map."""
         self._stopping = threading.Event()
         """Set when the service stops: running plans end early (their OMPL search polls it)."""
+        keys = Keys(cfg.cell)
+        # Latched: the executor checks every execute against this scene, also when it starts later.
+        self._scene_pub = declare_latched_publisher(session, keys.scene_state)
         # The scene's world only keeps the objects (no plan runs in it, so no broad phase).
         scene_file = scene_file or cfg.planner.scene_file
         self.scene = PlanningScene(CollisionWorld(self.robot, padding_m=cfg.robot.padding_m, broad_phase=False),
                                    threading.Lock(), current_q=self._start_from_joint_state, limits=cfg.limits,
-                                   scene_file=SceneFile(scene_file) if scene_file else None)
+                                   scene_file=SceneFile(scene_file) if scene_file else None,
+                                   on_change=lambda state: self._scene_pub.put(state.to_wire()))
         self.plan_workers = [PlanWorker.create(self.robot, cfg.robot.padding_m, cfg.planner)
                              for _ in range(cfg.planner.workers)]
         for worker in self.plan_workers:
             warm_up_worker(worker, seed=cfg.planner.seed)
-        keys = Keys(cfg.cell)
         self._subs = [
             session.declare_subscriber(keys.joint_states, guarded_subscriber(self.on_joint_state, "planner")),
             declare_latched_subscriber(session, keys.occupancy, guarded_subscriber(self.on_occupancy, "planner")),
@@ -110,7 +116,7 @@ class PlannerNode(Node):
         with self._state_lock:
             self._newest_map = occupancy
             self._map_received_monotonic = time.monotonic()
-        self._first_map.set()
+            self._map_arrived.notify_all()
 
     def _start_from_joint_state(self) -> np.ndarray:
         with self._state_lock:
@@ -124,19 +130,29 @@ class PlannerNode(Node):
         return q
 
     def _check_map(self) -> None:
+        """Refuse to plan blind (`map_readiness.occupancy_problem`). A request that races the first
+        map (services just started) or a map being rebuilt (a clear) waits for it briefly."""
         if not self.cfg.planner.require_occupancy:
             return
-        # A request that races the very first map (services just started) waits for it briefly.
-        self._first_map.wait(self.cfg.planner.first_map_wait_s)
+        deadline = time.monotonic() + self.cfg.planner.first_map_wait_s
+        cameras = [camera.camera_id for camera in self.cfg.cameras]
         with self._state_lock:
-            received = self._map_received_monotonic
-        if received is None:
-            raise ProtocolError(ErrorCode.OCCUPANCY_MISSING, "no occupancy map received yet")
-        age = time.monotonic() - received
-        if age > self.cfg.planner.occupancy_max_age_s:
-            raise ProtocolError(ErrorCode.OCCUPANCY_STALE,
-                                f"newest occupancy map is {age:.1f} s old (limit {self.cfg.planner.occupancy_max_age_s} s)",
-                                {"age_s": age})
+            while True:
+                occupancy = self._newest_map
+                problem = occupancy_problem(
+                    None if occupancy is None else occupancy.stamp, None if occupancy is None else occupancy.camera_frames,
+                    now_s=time.time(), max_age_s=self.cfg.planner.occupancy_max_age_s, cameras=cameras,
+                    min_frames=self.cfg.planner.occupancy_min_frames)
+                left_s = deadline - time.monotonic()
+                if problem is None:
+                    return
+                if problem.code is ErrorCode.OCCUPANCY_STALE or left_s <= 0:
+                    # A fresh exception: raising `problem` itself would tie it to this frame in a cycle
+                    # (exception, traceback, frame, local), keeping the query alive until the garbage
+                    # collector runs, and Zenoh ends a query only when it is dropped: the client would
+                    # wait for its timeout after the error reply.
+                    raise ProtocolError(problem.code, problem.message, problem.details)
+                self._map_arrived.wait(left_s)
 
     def handle_plan(self, query: zenoh.Query, worker: int) -> None:
         request = decode_request(query, PlanRequest)
@@ -223,6 +239,7 @@ class PlannerNode(Node):
         self._queryable.undeclare()
         self._scene_queryable.undeclare()
         self._workers.close()
+        self._scene_pub.undeclare()
         for sub in self._subs:
             sub.undeclare()
 

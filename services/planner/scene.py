@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import threading
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -29,12 +30,18 @@ from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.joint_order import reorder_to_robot
-from robonav.pipeline.wire.messages import SceneObjectSpec, SceneRequest, SceneResponse
+from robonav.pipeline.wire.messages import (
+    AttachedObjectSpec,
+    PlanningSceneState,
+    SceneObjectSpec,
+    SceneRequest,
+    SceneResponse,
+)
 from robonav.services.common import decode_request, reply_ok
 from robonav.services.config import LimitsConfig
 from robonav.services.limits import check_limit, check_scene_request
 from robonav.services.planner.scene_file import SceneFile, scene_requests
-from robonav.services.planner.scene_specs import checked, invalid_request, object_state, scene_object
+from robonav.services.planner.scene_specs import checked, invalid_request, object_spec, object_state, scene_object
 
 log = logging.getLogger("robonav.planner.scene")
 
@@ -73,6 +80,7 @@ class PlanningScene:
         initial_objects: Sequence[SceneObject] = (),
         limits: LimitsConfig | None = None,
         scene_file: SceneFile | None = None,
+        on_change: Callable[[PlanningSceneState], None] | None = None,
     ) -> None:
         """Take over the world's primitive objects.
 
@@ -87,6 +95,8 @@ class PlanningScene:
             limits: Request and scene size limits (default: the config's defaults).
             scene_file: Where the scene is saved after every change; what it holds is loaded
                 now, over `initial_objects`.
+            on_change: Called with the whole scene now and after every change, under the lock,
+                so calls come in revision order (the planner publishes it on `planner/scene_state`).
         """
         self._world = world
         self._lock = lock
@@ -95,10 +105,12 @@ class PlanningScene:
         self._objects: dict[str, SceneObject] = {o.name: o for o in initial_objects}
         self._revision = 0
         self._file = scene_file
+        self._on_change = on_change
         with self._lock:
             world.set_objects(list(self._objects.values()))
             if scene_file is not None:
                 self._restore(scene_file)
+            self._changed()
 
     def _restore(self, scene_file: SceneFile) -> None:
         saved = scene_file.load()
@@ -146,7 +158,20 @@ class PlanningScene:
                 if self._file is not None:
                     self._file.save(self._revision, scene_requests(list(self._objects.values()),
                                                                    self._world.attached_objects))
+                self._changed()
             return self._describe(request.request_id)
+
+    def state(self) -> PlanningSceneState:
+        """The whole scene as `planner/scene_state` carries it: complete objects, attached ones in their link's frame."""
+        attached = tuple(AttachedObjectSpec(link=a.link, touch_links=a.touch_links,
+                                            object=dataclasses.replace(object_spec(a.object), frame_id=a.link))
+                         for a in self._world.attached_objects)
+        return PlanningSceneState(stamp=time.time(), revision=self._revision,
+                                  objects=tuple(object_spec(o) for o in self._objects.values()), attached=attached)
+
+    def _changed(self) -> None:
+        if self._on_change is not None:
+            self._on_change(self.state())
 
     # Each operation validates everything before it touches the world, so a rejected request changes nothing.
 

@@ -10,6 +10,7 @@ queries hand their work to it.
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import logging
 import queue
 import threading
@@ -20,6 +21,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from robonav.pipeline.sim.driver import DriverLimits, DriverState, SetpointFollower
 from robonav.pipeline.sim.motion import MotionScript
 from robonav.pipeline.sim.world import SimWorld
 from robonav.pipeline.wire.codec import ProtocolError
@@ -35,7 +37,15 @@ from robonav.pipeline.wire.messages import (
     SimObjectsRequest,
     SimStatsRequest,
 )
-from robonav.services.common import Node, decode_request, guarded_queryable, guarded_subscriber, reply_ok, run_service
+from robonav.services.common import (
+    Node,
+    check_publication_size,
+    decode_request,
+    guarded_queryable,
+    guarded_subscriber,
+    reply_ok,
+    run_service,
+)
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
 from robonav.services.limits import check_scene_request
@@ -91,8 +101,14 @@ class SimNode(Node):
         self.labels = LabelRegistry()
         self.stats = LoopStats(tuple(c.camera_id for c in cfg.cameras))
         self._lock = threading.Lock()
-        self._setpoint: Setpoint | None = None
-        self._bad_setpoints = 0
+        lower, upper = self.world.joint_limits
+        self.follower = SetpointFollower(
+            DriverLimits(lower=lower, upper=upper, velocity=np.array(cfg.robot.max_velocity_rad_s, float),
+                         acceleration=np.array(cfg.robot.max_acceleration_rad_s2, float),
+                         jerk=np.array(cfg.robot.max_jerk_rad_s3, float)),
+            self.world.commanded_target()[0], timeout_s=cfg.sim.setpoint_timeout_s, slack_s=cfg.sim.setpoint_slack_s)
+        """The arm's own rules for setpoints, as a real driver's: only what the arm can do, brake when they stop."""
+        self._reported: set[str] = set()
         self._commands: queue.SimpleQueue[tuple[Callable[[], Any], concurrent.futures.Future[Any]]] = queue.SimpleQueue()
         keys = Keys(cfg.cell)
         self._joint_pub = session.declare_publisher(keys.joint_states)
@@ -100,7 +116,6 @@ class SimNode(Node):
         # Setpoints arrive at 1 kHz and only the newest matters: a ring channel keeps it in Zenoh
         # (no Python callback per sample competing for the GIL); the physics loop decodes one per step.
         self._setpoint_sub = session.declare_subscriber(keys.setpoint, zenoh.handlers.RingChannel(1))
-        self._on_setpoint = guarded_subscriber(self.on_setpoint, "sim")
         self._subs = [session.declare_subscriber(keys.status, guarded_subscriber(self.on_status, "sim"))]
         self._queryables = [
             session.declare_queryable(keys.contacts, guarded_queryable(self.handle_contacts, "sim")),
@@ -110,11 +125,6 @@ class SimNode(Node):
         self.workers = [RenderWorker(cfg, i) for i in range(len(cfg.cameras))]
 
     # --- Zenoh callbacks (any thread; on_setpoint runs on the physics thread) -------------------
-
-    def on_setpoint(self, sample: zenoh.Sample) -> None:
-        setpoint = Setpoint.from_wire(sample.payload.to_bytes())
-        with self._lock:
-            self._setpoint = setpoint
 
     def on_status(self, sample: zenoh.Sample) -> None:
         status = ExecutorStatus.from_wire(sample.payload.to_bytes())
@@ -145,7 +155,11 @@ class SimNode(Node):
                 for render_ms in worker.render_ms:
                     self.stats.render(worker.camera.camera_id, render_ms)
                 worker.render_ms.clear()
-            response = self.stats.report(self.world.sim_time_s)
+            counters = self.follower.counters
+            response = dataclasses.replace(
+                self.stats.report(self.world.sim_time_s), driver_state=self.follower.state.value,
+                setpoints_followed=counters.followed, setpoints_rejected=dict(counters.rejected),
+                setpoint_timeouts=counters.timeouts, brakes=counters.brakes, last_rejection=counters.last_rejection)
             if request.reset:
                 self.stats.reset(self.world.sim_time_s)
             return response
@@ -174,23 +188,49 @@ class SimNode(Node):
                 future.set_exception(exc)
 
     def _apply_setpoint(self) -> None:
+        """The newest setpoint, if the driver's rules let the arm follow it; the driver's own
+        command (a brake, a hold) otherwise. Runs every physics step."""
+        # The driver's clock is the wall's when the sim keeps real time: a stalled physics loop
+        # must not make time the commander saw pass look like a jump.
+        now_s = time.monotonic() if self.cfg.sim.realtime else self.world.sim_time_s
+        commanded = self.world.commanded_target()
         sample = self._setpoint_sub.try_recv()
         if sample is not None:
-            self._on_setpoint(sample)
-        with self._lock:
-            setpoint, self._setpoint = self._setpoint, None
-        if setpoint is not None:
-            q = reorder_to_robot(setpoint.position, setpoint.names, self.names, "position")
-            qd = reorder_to_robot(setpoint.velocity, setpoint.names, self.names, "velocity")
-            self.world.set_joint_target(q, qd)
+            try:
+                check_publication_size(sample)
+                setpoint = Setpoint.from_wire(sample.payload.to_bytes())
+                q = reorder_to_robot(setpoint.position, setpoint.names, self.names, "position")
+                qd = reorder_to_robot(setpoint.velocity, setpoint.names, self.names, "velocity")
+                qdd = reorder_to_robot(setpoint.acceleration, setpoint.names, self.names, "acceleration")
+            except ValueError as exc:  # ProtocolError is one: garbage, wrong joint names
+                braking = self.follower.state is DriverState.FOLLOWING
+                self.follower.reject_malformed(str(exc), now_s, commanded)
+                self._report("bad_message", str(exc), braking)
+            else:
+                braking = self.follower.state is DriverState.FOLLOWING
+                rejection = self.follower.offer(q, qd, qdd, setpoint.stamp, now_s, commanded)
+                if rejection is None:
+                    self.world.set_joint_target(q, qd)
+                else:
+                    self._report(rejection.reason, rejection.message, braking and rejection.reason != "out_of_order")
+        if self.follower.tick(now_s, commanded):
+            log.warning("no setpoint for %.0f ms mid-motion: braking to rest (setpoint watchdog)",
+                        self.cfg.sim.setpoint_timeout_s * 1e3)
+        command = self.follower.command(now_s)
+        if command is not None:
+            self.world.set_joint_target(*command)
+
+    def _report(self, reason: str, message: str, braking: bool) -> None:
+        """Log a rejected setpoint: every one that brakes a moving arm, else the first of each reason."""
+        if braking:
+            log.warning("rejected a setpoint (%s: %s): braking to rest", reason, message)
+        elif reason not in self._reported:
+            log.warning("rejected a setpoint (%s: %s); further ones while the arm %s are counted in sim/stats",
+                        reason, message, self.follower.state.value)
+        self._reported.add(reason)
 
     def _step(self) -> None:
-        try:
-            self._apply_setpoint()
-        except ValueError as exc:  # ProtocolError is one: wrong joint names in a setpoint
-            self._bad_setpoints += 1
-            if self._bad_setpoints == 1:
-                log.warning("ignoring a setpoint: %s; further bad setpoints are counted silently", exc)
+        self._apply_setpoint()
         self.objects.step_motions()
         self.world.step()
         deepest = {f"{c.link}|{c.object}": c.distance_m for c in self.world.robot_obstacle_contacts()}

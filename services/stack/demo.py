@@ -21,6 +21,7 @@ import yaml
 
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.config import ConfigError
+from robonav.pipeline.perception.map_readiness import map_complete
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, PlanResponse
 from robonav.services.client import QueryFailed, RobonavClient
@@ -36,6 +37,9 @@ log = logging.getLogger("robonav.demo")
 SERVICE_START_TIMEOUT_S = 300.0
 """Longest wait for every service's liveliness token [s]. Services compile and warm up before
 they declare it: seconds with a filled compile cache (`robonav precompile`), minutes without."""
+PLAN_ATTEMPTS = 3
+"""Plans (and executes) per goal when one is refused for a reason a fresher map can remove."""
+RETRYABLE = {"OCCUPANCY_INCOMPLETE", "OCCUPANCY_STALE", "OCCUPANCY_MISSING", "PATH_IN_COLLISION"}
 SETTLE_TIMEOUT_S = 2.0
 """Longest wait after a trajectory ends for the arm to come within tolerance of the goal [s]."""
 
@@ -47,6 +51,13 @@ def write_seeded_config(source: Path, seed: int, directory: Path) -> Path:
     out = directory / "demo-config.yaml"
     out.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
     return out
+
+
+def map_is_complete(client: RobonavClient, cfg: RobonavConfig) -> bool:
+    """Whether the newest map holds the frames the planner needs from every camera."""
+    occupancy = client.occupancy
+    return occupancy is not None and map_complete(occupancy.camera_frames, [c.camera_id for c in cfg.cameras],
+                                                  cfg.planner.occupancy_min_frames)
 
 
 def true_scene(cfg: RobonavConfig) -> CollisionWorld:
@@ -63,27 +74,44 @@ def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, i
     # Blocked means the goal needs a detour around a real obstacle.
     record: dict[str, Any] = {"index": index, "goal_rad": goal.round(4).tolist(),
                               "straight_line_blocked": not truth.motion_valid(start, goal, 0.01)}
-    asked = time.monotonic()
-    plan = client.plan(goal, seed=seed + index, request_id=f"demo-{index}")
-    record["plan_wall_s"] = round(time.monotonic() - asked, 3)
-    if isinstance(plan, ErrorReply):
-        record.update(reached=False, error=f"plan: {plan.code}: {plan.message}")
-        return record
-    assert isinstance(plan, PlanResponse)
-    record.update(planning_ms=round(plan.planning_time_s * 1e3, 2), path_length_rad=round(plan.path_length_rad, 4),
-                  waypoints=plan.waypoint_count,
-                  min_clearance_m=None if plan.min_clearance_m is None else round(plan.min_clearance_m, 4))
-    if interrupt.is_set():  # Ctrl-C while planning: do not start the motion
-        record.update(reached=False, interrupted=True)
-        return record
-    started = time.monotonic()
-    # A map that changes under the moving arm (noise, a newly seen surface) should cost a
-    # replan, not the goal.
-    execution = client.execute(plan.path, joint_names=plan.joint_names, replan=True, occupancy_stamp=plan.occupancy_stamp)
-    if isinstance(execution, ErrorReply):
-        record.update(reached=False, error=f"execute: {execution.code}: {execution.message}")
+    refusals: list[str] = []
+    for attempt in range(PLAN_ATTEMPTS):
+        asked = time.monotonic()
+        plan = client.plan(goal, seed=seed + index + 100 * attempt, request_id=f"demo-{index}-{attempt}")
+        record["plan_wall_s"] = round(time.monotonic() - asked, 3)
+        if isinstance(plan, ErrorReply):
+            record.update(reached=False, error=f"plan: {plan.code}: {plan.message}")
+            if plan.code in RETRYABLE:
+                refusals.append(f"plan: {plan.code}")
+                continue
+            return record
+        assert isinstance(plan, PlanResponse)
+        record.update(planning_ms=round(plan.planning_time_s * 1e3, 2), path_length_rad=round(plan.path_length_rad, 4),
+                      waypoints=plan.waypoint_count,
+                      min_clearance_m=None if plan.min_clearance_m is None else round(plan.min_clearance_m, 4))
+        if interrupt.is_set():  # Ctrl-C while planning: do not start the motion
+            record.update(reached=False, interrupted=True)
+            return record
+        started = time.monotonic()
+        # A map that changes under the moving arm (noise, a newly seen surface) should cost a
+        # replan, not the goal.
+        execution = client.execute(plan.path, joint_names=plan.joint_names, replan=True,
+                                   occupancy_stamp=plan.occupancy_stamp)
+        if isinstance(execution, ErrorReply):
+            # The executor checks the path against its own, newer map: a voxel that came in since
+            # the plan refuses it (PATH_IN_COLLISION), and a new plan sees that voxel too.
+            record.update(reached=False, error=f"execute: {execution.code}: {execution.message}")
+            if execution.code in RETRYABLE:
+                refusals.append(f"execute: {execution.code}: {execution.message}")
+                continue
+            return record
+        break
+    else:
         return record
     assert isinstance(execution, ExecuteResponse)
+    record.pop("error", None)
+    record.update(plan_attempts=attempt + 1, refusals=refusals, execute_check_ms=execution.check_ms,
+                  execute_checked_samples=execution.checked_samples)
     trajectory_id = execution.trajectory_id
     wait_or_interrupt(client, lambda: client.trajectory_finished(trajectory_id),
                       execution.duration_s + cfg.demo.goal_timeout_s, interrupt)
@@ -127,9 +155,11 @@ def run_demo(cfg: RobonavConfig, config_path: Path, seed: int, *, view_port: int
             if missing:
                 raise RuntimeError(f"services not up after {SERVICE_START_TIMEOUT_S:.0f} s: {sorted(missing)}; exited: {stack.dead()}")
             summary["services_alive_s"] = round(time.monotonic() - started, 2)
-            if not client.wait_for(lambda: client.occupancy is not None and client.joint_state is not None,
+            # A complete map, not just a first one: the planner refuses one that is still being
+            # built (OCCUPANCY_INCOMPLETE), and so would the first plan.
+            if not client.wait_for(lambda: client.joint_state is not None and map_is_complete(client, cfg),
                                    cfg.demo.first_map_timeout_s):
-                raise RuntimeError(f"no occupancy map within {cfg.demo.first_map_timeout_s:.0f} s")
+                raise RuntimeError(f"no complete occupancy map within {cfg.demo.first_map_timeout_s:.0f} s")
             summary["first_map_s"] = round(time.monotonic() - started, 2)
             with Interrupt() as interrupt:
                 for index, goal in enumerate(cfg.demo.goals_rad):
@@ -150,6 +180,8 @@ def run_demo(cfg: RobonavConfig, config_path: Path, seed: int, *, view_port: int
             contacts = client.contacts()
             if isinstance(contacts, ErrorReply):
                 raise RuntimeError(f"contacts query failed: {contacts.code}: {contacts.message}")
+            checks = [g["execute_check_ms"] for g in summary["goals"] if g.get("execute_check_ms") is not None]
+            summary["execute_check_ms_median"] = round(float(np.median(checks)), 2) if checks else None
             summary.update(contacts=contacts.contact_count, contact_pairs=list(contacts.pairs),
                            min_obstacle_distance_m=None if contacts.min_distance_m is None else round(contacts.min_distance_m, 4))
             if snapshot is not None:

@@ -148,7 +148,8 @@ def test_dynamic_extrapolation_stops_when_setpoints_stop() -> None:
         for _ in range(240):
             world.step()
         q, qd = world.joint_state()
-        assert q[0] == pytest.approx(HOME[0] + 0.2 * 0.05, abs=1e-3)  # 50 ms hold, then stop
+        hold_s = world._sim.setpoint_timeout_s  # a first-order hold this long, then stop
+        assert q[0] == pytest.approx(HOME[0] + 0.2 * hold_s, abs=1e-3)
         assert abs(qd[0]) < 1e-3
 
 

@@ -13,6 +13,7 @@ from robonav.pipeline.wire.codec import SCHEMA_VERSION, Message, ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.messages import (
     ALL_MESSAGES,
+    AttachedObjectSpec,
     CameraStats,
     ContactEvent,
     ContactsRequest,
@@ -25,6 +26,7 @@ from robonav.pipeline.wire.messages import (
     JointState,
     ObjectMotionSpec,
     Occupancy,
+    PlanningSceneState,
     PlanRequest,
     PlanResponse,
     PointCloud,
@@ -53,7 +55,7 @@ EXAMPLES: list[Message] = [
     PointCloud(stamp=2.0, camera_id="cam0", points=RNG.normal(size=(50, 3)).astype(np.float32), seq=3,
                intrinsics=CameraIntrinsics(640, 480, 430.0, 430.0, 319.5, 239.5)),
     Occupancy(stamp=3.0, resolution_m=0.02, octomap_binary=b"# Octomap OcTree binary file\n\x00\xff",
-              occupied_centers_m=RNG.normal(size=(10, 3)).astype(np.float32), seq=2),
+              occupied_centers_m=RNG.normal(size=(10, 3)).astype(np.float32), seq=2, camera_frames={"cam0": 3, "cam1": 0}),
     PlanRequest(goal_positions=RNG.normal(size=7), joint_names=NAMES, start_positions=RNG.normal(size=7),
                 planner_id="rrtconnect", allowed_planning_time=1.0, seed=4, simplify=False,
                 max_velocity_scaling_factor=0.3, max_acceleration_scaling_factor=0.2, request_id="r1"),
@@ -103,10 +105,18 @@ EXAMPLES: list[Message] = [
     SimObjectsResponse(stamp=7.0, sim_time_s=3.5, revision=2, objects=(
         SceneObjectState("box", "box", (0.5, 0.0, 0.2), (0.0, 0.0, 0.0, 1.0), size_m=(0.1, 0.2, 0.3)),),
         pending_motions=1, fired_motions=1, request_id="o1"),
+    PlanningSceneState(stamp=8.0, revision=3, objects=(
+        SceneObjectSpec("tet", "mesh", (0.4, 0.1, 0.0), vertices_m=RNG.normal(size=(4, 3)),
+                        triangles=np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]])),), attached=(
+        AttachedObjectSpec(link="panda_hand", touch_links=("panda_leftfinger",),
+                           object=SceneObjectSpec("cup", "cylinder", (0.0, 0.0, 0.1), radius_m=0.04, length_m=0.1,
+                                                  frame_id="panda_hand")),)),
     SimStatsRequest(reset=True),
     SimStatsResponse(wall_time_s=10.0, sim_time_s=9.99, real_time_factor=0.999, steps=2398, step_lateness_ms_p50=0.1,
                      step_lateness_ms_p99=4.0, step_lateness_ms_max=20.0, dropped_time_s=0.0,
-                     joint_state_period_ms_max=30.0, cameras=(CameraStats("cam0", frames=50, render_ms_p50=90.0),)),
+                     joint_state_period_ms_max=30.0, cameras=(CameraStats("cam0", frames=50, render_ms_p50=90.0),),
+                     driver_state="holding", setpoints_followed=1200, setpoints_rejected={"jump": 2, "velocity": 0},
+                     setpoint_timeouts=1, brakes=3, last_rejection="jump: joint 0 position is 0.5 from ..."),
     StackStatusRequest(),
     StackStatusResponse(stamp=8.0, started_stamp=1.0, supervisor_pid=42, restart=True, services=(
         ServiceProcessStatus("planner", "running", True, restarts=1, pid=43, uptime_s=3.5, alive_for_s=1.0,

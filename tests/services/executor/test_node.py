@@ -16,11 +16,14 @@ import zenoh
 
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.wire.messages import (
+    AttachedObjectSpec,
     ErrorReply,
     ExecuteRequest,
     ExecuteResponse,
     JointState,
     Occupancy,
+    PlanningSceneState,
+    SceneObjectSpec,
     Setpoint,
     StopResponse,
 )
@@ -77,9 +80,12 @@ def executor() -> Iterator[tuple[ExecutorNode, RobonavClient, FakeRobot]]:
     # A hand-over lead of 50 ms, not the default 10: with the suite loading both cores of a small
     # machine, the stream process was seen to get a preempting trajectory after its switch tick
     # (the stream counts such late hand-overs), and these tests are about what an on-time one does.
-    executor_cfg = dataclasses.replace(CONFIG.executor, joint_state_timeout_s=0.2, command_lead_s=0.05)
-    cfg = dataclasses.replace(CONFIG, executor=executor_cfg,
-                              zenoh=ZenohConfig(connect=(endpoint,)))
+    # No planner and no camera: executes are checked against the maps and scenes a test publishes
+    # itself, and need neither.
+    executor_cfg = dataclasses.replace(CONFIG.executor, joint_state_timeout_s=0.2, command_lead_s=0.05,
+                                       require_scene=False, scene_wait_s=0.2)
+    cfg = dataclasses.replace(CONFIG, executor=executor_cfg, zenoh=ZenohConfig(connect=(endpoint,)),
+                              planner=dataclasses.replace(CONFIG.planner, require_occupancy=False))
     node_session = open_session(cfg.zenoh)
     node = ExecutorNode(cfg, node_session)
     stop = threading.Event()
@@ -254,31 +260,86 @@ def _map_with_cubes(centers_m: np.ndarray, stamp: float) -> bytes:
                      occupied_centers_m=np.asarray(centers_m, dtype=np.float32).reshape(-1, 3)).to_wire()
 
 
-@pytest.mark.parametrize("planned_on", ["older map", "newest map"])
-def test_a_voxel_that_arrived_while_the_plan_was_made_is_watched(
-        executor: tuple[ExecutorNode, RobonavClient, FakeRobot], planned_on: str) -> None:
-    """The plan was made on map 1; map 2, with a voxel on the path, came in before the execute.
-    Named by its stamp, map 1 is the baseline and the voxel stops the arm; had the executor
-    taken the newest map as the one planned on, the voxel would pass unwatched."""
-    node, client, _ = executor
-    path = _path(HOME, [0.8, 0, 0, 0, 0, 0, 0])
-    hand = RobotModel.from_config(CONFIG.robot).link_poses(HOME + np.array([0.6, 0, 0, 0, 0, 0, 0]))["panda_hand"][:3, 3]
-    far = np.array([[-0.8, -0.8, 0.1]])
+SWING = _path(HOME, [0.8, 0, 0, 0, 0, 0, 0])
+HAND_ON_SWING = RobotModel.from_config(CONFIG.robot).link_poses(HOME + np.array([0.6, 0, 0, 0, 0, 0, 0]))["panda_hand"][:3, 3]
+FAR = np.array([[-0.8, -0.8, 0.1]])
+
+
+@pytest.mark.parametrize("stamp", [None, 100.0, 0.0], ids=["no stamp", "stamp of the map", "stamp 0"])
+def test_an_execute_through_a_voxel_is_refused_with_or_without_a_stamp(
+        executor: tuple[ExecutorNode, RobonavClient, FakeRobot], stamp: float | None) -> None:
+    node, client, robot = executor
     publisher = declare_latched_publisher(client.session, client.keys.occupancy)
-    publisher.put(_map_with_cubes(far, stamp=100.0))
-    assert client.wait_for(lambda: node.monitor.held_maps == 1, 5.0)
-    publisher.put(_map_with_cubes(np.vstack([far, hand]), stamp=101.0))
-    assert client.wait_for(lambda: node.monitor.held_maps == 2, 5.0)
-    stamp = 100.0 if planned_on == "older map" else None
-    reply = client.execute(path, trajectory_id="in-flight", occupancy_stamp=stamp)
+    publisher.put(_map_with_cubes(np.vstack([FAR, HAND_ON_SWING]), stamp=100.0))
+    assert client.wait_for(lambda: node.maps.newest() is not None, 5.0)
+    reply = client.execute(SWING, trajectory_id="through", occupancy_stamp=stamp)
+    assert isinstance(reply, ErrorReply) and reply.code == "PATH_IN_COLLISION", reply
+    details = reply.details
+    assert details["index"] > 0 and 0 < details["time_from_start_s"] and len(details["positions"]) == 7
+    assert any(pair.endswith("|occupancy") for pair in details["pairs"]) and details["occupancy_stamp"] == 100.0
+    assert not robot.setpoints  # nothing moved
+    publisher.put(_map_with_cubes(FAR, stamp=101.0))  # the voxel is gone: the same path runs
+    assert client.wait_for(lambda: node.maps.newest() is not None and node.maps.newest().stamp == 101.0, 5.0)
+    reply = client.execute(SWING, trajectory_id="clear")
+    assert isinstance(reply, ExecuteResponse) and reply.check_ms is not None and reply.checked_samples > 10, reply
+
+
+def test_a_voxel_that_comes_back_after_the_check_is_watched(executor: tuple[ExecutorNode, RobonavClient, FakeRobot]) -> None:
+    """The plan's map held a voxel on the path, the map the execute was checked against did not,
+    a later one holds it again: it stops the arm. Had the monitor counted only voxels new since
+    the plan's map (named by the stamp the client sent), it would have gone unwatched."""
+    node, client, _ = executor
+    publisher = declare_latched_publisher(client.session, client.keys.occupancy)
+    publisher.put(_map_with_cubes(np.vstack([FAR, HAND_ON_SWING]), stamp=100.0))  # what the plan saw
+    assert client.wait_for(lambda: node.maps.newest() is not None and node.maps.newest().stamp == 100.0, 5.0)
+    publisher.put(_map_with_cubes(FAR, stamp=101.0))  # a frame that missed it
+    assert client.wait_for(lambda: node.maps.newest().stamp == 101.0, 5.0)
+    reply = client.execute(SWING, trajectory_id="comes-back", occupancy_stamp=100.0)
     assert isinstance(reply, ExecuteResponse), reply
-    client.wait_for_trajectory("in-flight", reply.duration_s + 5.0)
+    publisher.put(_map_with_cubes(np.vstack([FAR, HAND_ON_SWING]), stamp=102.0))  # seen again
+    client.wait_for_trajectory("comes-back", reply.duration_s + 5.0)
     status = client.status
-    assert status is not None and status.trajectory_id == "in-flight"
-    if planned_on == "older map":
-        assert (status.state, status.error_code) == ("error", "PATH_BLOCKED"), status
-    else:
-        assert (status.state, status.last_result) == ("idle", "succeeded"), status
+    assert status is not None and status.trajectory_id == "comes-back"
+    assert (status.state, status.error_code) == ("error", "PATH_BLOCKED"), status
+
+
+def test_an_execute_through_a_planner_scene_object_is_refused(executor: tuple[ExecutorNode, RobonavClient, FakeRobot]) -> None:
+    """The executor checks against the planner's objects, which it gets latched on planner/scene_state."""
+    node, client, robot = executor
+    scene = declare_latched_publisher(client.session, client.keys.scene_state)
+    box = SceneObjectSpec("box", "box", tuple(HAND_ON_SWING), size_m=(0.1, 0.1, 0.1))
+    scene.put(PlanningSceneState(stamp=time.time(), revision=1, objects=(box,)).to_wire())
+    assert client.wait_for(lambda: node.check.scene_revision == 1, 5.0)
+    reply = client.execute(SWING)
+    assert isinstance(reply, ErrorReply) and reply.code == "PATH_IN_COLLISION", reply
+    assert any(pair.endswith("|box") for pair in reply.details["pairs"]) and reply.details["scene_revision"] == 1
+    # The same box held in the hand (attached, in the hand's frame) does not block the path,
+    # but one fixed to the hand that reaches into the base does.
+    held = AttachedObjectSpec(link="panda_hand", object=SceneObjectSpec("box", "box", (0.0, 0.0, 0.1), size_m=(0.04, 0.04, 0.04),
+                                                                        frame_id="panda_hand"))
+    scene.put(PlanningSceneState(stamp=time.time(), revision=2, attached=(held,)).to_wire())
+    assert client.wait_for(lambda: node.check.scene_revision == 2, 5.0)
+    reply = client.execute(SWING, trajectory_id="holding")
+    assert isinstance(reply, ExecuteResponse), reply
+    assert client.wait_for_trajectory("holding", reply.duration_s + 5.0) == "succeeded"
+    back = _path(robot.position, [-0.8, 0, 0, 0, 0, 0, 0])
+    pole = AttachedObjectSpec(link="panda_hand", object=SceneObjectSpec("pole", "cylinder", (0.0, 0.0, 0.0), radius_m=0.02,
+                                                                        length_m=2.0, frame_id="panda_hand"))
+    scene.put(PlanningSceneState(stamp=time.time(), revision=3, attached=(pole,)).to_wire())
+    assert client.wait_for(lambda: node.check.scene_revision == 3, 5.0)
+    reply = client.execute(back)
+    assert isinstance(reply, ErrorReply) and reply.code == "PATH_IN_COLLISION", reply
+    assert any(pair.startswith("pole|") for pair in reply.details["pairs"]), reply.details
+
+
+def test_without_a_planner_scene_an_execute_is_refused(executor: tuple[ExecutorNode, RobonavClient, FakeRobot]) -> None:
+    node, client, robot = executor
+    node.check._cfg = dataclasses.replace(node.cfg, executor=dataclasses.replace(node.cfg.executor, require_scene=True))
+    started = time.monotonic()
+    reply = client.execute(SWING)
+    assert isinstance(reply, ErrorReply) and reply.code == "SCENE_MISSING", reply
+    assert time.monotonic() - started >= node.cfg.executor.scene_wait_s
+    assert "planner/scene_state" in reply.message and not robot.setpoints
 
 
 def test_a_replan_waits_for_maps_that_stopped_changing(executor: tuple[ExecutorNode, RobonavClient, FakeRobot]) -> None:
@@ -331,11 +392,10 @@ def test_replanning_ends_in_path_blocked_whatever_the_planner_does(
     far = np.array([[-0.8, -0.8, 0.1]])
     publisher = declare_latched_publisher(client.session, client.keys.occupancy)
     publisher.put(_map_with_cubes(far, stamp=100.0))
-    assert client.wait_for(lambda: node.monitor.held_maps == 1, 5.0)
-    publisher.put(_map_with_cubes(np.vstack([far, hand]), stamp=101.0))  # planned on map 100: the hand's voxel is new
-    assert client.wait_for(lambda: node.monitor.held_maps == 2, 5.0)
-    reply = client.execute(path, trajectory_id="blocked", occupancy_stamp=100.0, replan=True, replan_attempts=2)
+    assert client.wait_for(lambda: node.maps.newest() is not None and node.maps.newest().stamp == 100.0, 5.0)
+    reply = client.execute(path, trajectory_id="blocked", replan=True, replan_attempts=2)  # checked on map 100
     assert isinstance(reply, ExecuteResponse), reply
+    publisher.put(_map_with_cubes(np.vstack([far, hand]), stamp=101.0))  # a voxel lands on the rest of the path
     assert client.wait_for(lambda: client.status is not None and client.status.state == "replanning", 10.0)
     replanning_at = time.monotonic()
     assert client.wait_for(lambda: client.status.state == "error", 10.0), client.status  # type: ignore[union-attr]

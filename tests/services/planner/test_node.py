@@ -18,10 +18,13 @@ import pytest
 import zenoh
 
 from robonav.pipeline.planning.ik import pose_error
+from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.transforms import make_transform
 from robonav.pipeline.wire.messages import (
     ErrorReply,
     JointState,
     Occupancy,
+    PlanningSceneState,
     PlanRequest,
     PlanResponse,
     SceneObjectSpec,
@@ -29,12 +32,13 @@ from robonav.pipeline.wire.messages import (
     SceneResponse,
 )
 from robonav.services.client import RobonavClient
-from robonav.services.common import declare_latched_publisher, open_session
+from robonav.services.common import declare_latched_publisher, declare_latched_subscriber, open_session
 from robonav.services.config import ZenohConfig, load_config
 from robonav.services.keys import Keys
 from robonav.services.planner.node import PlannerNode
 
 CONFIG = load_config()
+CONFIG_ROBOT = RobotModel.from_config(CONFIG.robot)
 HOME = np.array(CONFIG.robot.home_position_rad)
 GOAL = np.array(CONFIG.demo.goals_rad[0])
 
@@ -156,6 +160,55 @@ def test_a_request_racing_the_first_map_waits_for_it(planner: tuple[PlannerNode,
     assert replies and isinstance(replies[0], PlanResponse), replies
 
 
+def test_an_empty_map_after_a_clear_is_not_free_space(planner: tuple[PlannerNode, zenoh.Session, RobonavClient]) -> None:
+    """A map says how many frames each camera integrated since the last clear: until every
+    configured camera has the configured number, plans are OCCUPANCY_INCOMPLETE; and a map
+    is as old as its stamp says, whenever it arrives."""
+    node, session, client = planner
+    (camera,) = [c.camera_id for c in CONFIG.cameras]
+    needed = CONFIG.planner.occupancy_min_frames
+    assert needed >= 2
+
+    published = [0]
+    wall = _wall_map(-0.9, 0.0)
+
+    def publish(age_s: float, frames: int | None) -> None:
+        published[0] += 1
+        seq = published[0]
+        occupancy = dataclasses.replace(wall, stamp=time.time() - age_s, seq=seq,
+                                        camera_frames=None if frames is None else {camera: frames})
+        _publish_until(session, client.keys.occupancy, occupancy.to_wire(),
+                       lambda: node._newest_map is not None and node._newest_map.seq == seq)
+
+    publish(0.0, 0)  # what perception sends right after perception/clear
+    reply = client.plan(GOAL, start_positions=HOME, seed=1)
+    assert isinstance(reply, ErrorReply) and reply.code == "OCCUPANCY_INCOMPLETE", reply
+    assert reply.details["camera_frames"] == {camera: 0} and reply.details["required_frames"] == needed
+    assert reply.details["missing"] == [camera]
+    publish(0.0, needed - 1)
+    reply = client.plan(GOAL, start_positions=HOME, seed=1)
+    assert isinstance(reply, ErrorReply) and reply.code == "OCCUPANCY_INCOMPLETE", reply
+
+    # A plan that arrives while the map is rebuilt waits for it (up to first_map_wait_s).
+    node.cfg = dataclasses.replace(node.cfg, planner=dataclasses.replace(node.cfg.planner, first_map_wait_s=10.0))
+    replies: list = []
+    asking = threading.Thread(target=lambda: replies.append(client.plan(GOAL, start_positions=HOME, seed=1)))
+    asking.start()
+    time.sleep(0.5)
+    assert not replies, "the planner planned on an incomplete map"
+    publish(0.0, needed)
+    asking.join(timeout=20.0)
+    assert replies and isinstance(replies[0], PlanResponse), replies
+
+    # Arriving now does not make a map fresh: its stamp (newest frame) is what counts.
+    publish(5.0, needed)
+    reply = client.plan(GOAL, start_positions=HOME, seed=1)
+    assert isinstance(reply, ErrorReply) and reply.code == "OCCUPANCY_STALE" and reply.details["age_s"] > 4.0, reply
+    # A map from a producer older than the frame counts is taken as it is.
+    publish(0.0, None)
+    assert isinstance(client.plan(GOAL, start_positions=HOME, seed=1), PlanResponse)
+
+
 def test_a_late_planner_gets_the_last_published_map(tmp_path: Path) -> None:
     """Perception publishes the map latched: a planner started after it still gets the last one."""
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
@@ -213,6 +266,50 @@ def test_goal_forms_and_the_planning_scene_over_zenoh(planner: tuple[PlannerNode
     scene = client.scene(SceneRequest(operation="remove", names=("crate",)))
     assert isinstance(scene, SceneResponse) and scene.objects == ()
     assert isinstance(client.plan(GOAL, start_positions=HOME, seed=3), PlanResponse)
+
+
+def test_the_planner_publishes_its_whole_scene_latched_on_every_change(
+        planner: tuple[PlannerNode, zenoh.Session, RobonavClient]) -> None:
+    """What the executor checks executes against: complete objects (meshes too), attached ones in their link's frame."""
+    _, session, client = planner
+    states: list[PlanningSceneState] = []
+    arrived = threading.Condition()
+
+    def on_state(sample: zenoh.Sample) -> None:
+        with arrived:
+            states.append(PlanningSceneState.from_wire(sample.payload.to_bytes()))
+            arrived.notify_all()
+
+    subscriber = declare_latched_subscriber(session, client.keys.scene_state, on_state)  # after the planner started
+    try:
+        with arrived:
+            assert arrived.wait_for(lambda: states, 5.0), "a late subscriber got no scene"
+        assert states[-1].revision == 0 and states[-1].objects == () and states[-1].attached == ()
+        vertices = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.1]])
+        triangles = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+        reply = client.scene(SceneRequest(operation="add", objects=(
+            SceneObjectSpec("tetra", "mesh", (0.6, 0.3, 0.4), vertices_m=vertices, triangles=triangles),
+            SceneObjectSpec("cup", "cylinder", (0.5, -0.3, 0.3), radius_m=0.04, length_m=0.1))))
+        assert isinstance(reply, SceneResponse)
+        with arrived:
+            assert arrived.wait_for(lambda: states[-1].revision == 1, 5.0)
+        tetra = next(o for o in states[-1].objects if o.name == "tetra")
+        np.testing.assert_array_equal(tetra.vertices_m, vertices)
+        np.testing.assert_array_equal(tetra.triangles, triangles)
+        reply = client.scene(SceneRequest(operation="attach", names=("cup",), link="panda_hand",
+                                          touch_links=("panda_leftfinger",), joint_positions=HOME))
+        assert isinstance(reply, SceneResponse)
+        with arrived:
+            assert arrived.wait_for(lambda: states[-1].revision == 2, 5.0)
+        (held,) = states[-1].attached
+        assert held.link == "panda_hand" and held.touch_links == ("panda_leftfinger",)
+        assert held.object.frame_id == "panda_hand" and [o.name for o in states[-1].objects] == ["tetra"]
+        # Posed in the hand's frame: where the hand holds it at HOME is where it was added.
+        world_from_cup = CONFIG_ROBOT.frame_pose(HOME, "panda_hand") @ make_transform(held.object.position_m,
+                                                                                      held.object.quat_xyzw)
+        np.testing.assert_allclose(world_from_cup[:3, 3], [0.5, -0.3, 0.3], atol=1e-9)
+    finally:
+        subscriber.undeclare()
 
 
 def _quat_xyzw(rotation: np.ndarray) -> np.ndarray:

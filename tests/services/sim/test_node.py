@@ -51,8 +51,10 @@ WALL = {"name": "wall", "type": "box", "position_m": [0.0, 0.38, 0.5], "size_m":
 @pytest.fixture(scope="module")
 def sim_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
     directory = tmp_path_factory.mktemp("sim")
+    # The tests publish setpoints from a Python loop that shares its process with the recorder's
+    # decoding: a generous setpoint timeout keeps a stall of that loop from braking the arm.
     path = write_config(directory, "sim.yaml", zenoh={"connect": [f"tcp/127.0.0.1:{free_port()}"]},
-                        sim={"follow": "kinematic", "objects": [WALL]})
+                        sim={"follow": "kinematic", "objects": [WALL], "setpoint_timeout_s": 1.0})
     data = yaml.safe_load(path.read_text(encoding="utf-8"))
     data["cameras"] = [{"camera_id": "clean", "output": "both", **CAMERA}, {"camera_id": "noisy", **CAMERA}]
     data["sim"]["camera_noise"] = {"noisy": {"enabled": True, "dropout_probability": 0.3, "latency_s": NOISY_LATENCY_S}}
@@ -115,14 +117,21 @@ def objects_query(client: RobonavClient, request: SimObjectsRequest) -> SimObjec
 
 def stream_setpoints(client: RobonavClient, cfg: RobonavConfig, q_of_t: Callable[[float], np.ndarray],
                      duration_s: float) -> None:
-    """Publish setpoints at 100 Hz along q_of_t(t), like an executor would."""
+    """Publish setpoints at 100 Hz along q_of_t(t), like an executor would: with their velocity,
+    so the sim's driver sees them continue one another however late the next one comes."""
     key = client.keys.setpoint
     start = time.monotonic()
     while (t := time.monotonic() - start) < duration_s:
         q = q_of_t(t)
+        qd = (q_of_t(t + 1e-3) - q_of_t(max(t - 1e-3, 0.0))) / (t + 1e-3 - max(t - 1e-3, 0.0))
         client.session.put(key, Setpoint(stamp=time.time(), trajectory_id="test", names=cfg.robot.joint_names,
-                                         position=q, velocity=np.zeros(7), acceleration=np.zeros(7)).to_wire())
+                                         position=q, velocity=qd, acceleration=np.zeros(7)).to_wire())
         time.sleep(0.01)
+
+
+def smooth_step(x: float) -> float:
+    """0 to 1 with zero velocity at both ends (a half cosine): setpoints the driver's limits allow."""
+    return 0.5 * (1.0 - math.cos(math.pi * min(max(x, 0.0), 1.0)))
 
 
 def test_frames_show_the_arm_at_the_joint_state_of_their_stamp(sim: tuple[RobonavClient, Recorder, RobonavConfig]) -> None:
@@ -241,14 +250,14 @@ def test_driving_the_arm_into_a_box_is_a_contact_event(sim: tuple[RobonavClient,
     client.contacts(reset=True)
     home = np.array(cfg.robot.home_position_rad)
     into_wall = home + np.array([math.pi / 2, 0, 0, 0, 0, 0, 0])
-    stream_setpoints(client, cfg, lambda t: home + (into_wall - home) * min(t / 1.0, 1.0), 1.5)
+    stream_setpoints(client, cfg, lambda t: home + (into_wall - home) * smooth_step(t / 1.5), 2.0)
     assert recorder.wait_for(lambda: any(e.event == "begin" and e.object == "wall" for e in recorder.events))
     contacts = client.contacts()
     assert not isinstance(contacts, ErrorReply) and contacts.contact_count >= 1
     assert all(pair.endswith("|wall") for pair in contacts.pairs)
     begin = next(e for e in recorder.events if e.event == "begin")
     assert begin.distance_m <= 0.0 and begin.link.startswith("panda_") and begin.contact_count >= 1
-    stream_setpoints(client, cfg, lambda t: into_wall + (home - into_wall) * min(t / 1.0, 1.0), 1.5)
+    stream_setpoints(client, cfg, lambda t: into_wall + (home - into_wall) * smooth_step(t / 1.5), 2.0)
     assert recorder.wait_for(lambda: any(e.event == "end" for e in recorder.events))
 
 
