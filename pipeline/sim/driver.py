@@ -11,11 +11,13 @@ a driver must do"):
   time dt between them its position is within reach of the last one moving at its velocity
   (0.5 a_max dt^2, plus v_max times a small timing slack for clock jitter), its velocity within
   a_max (dt + slack). dt is the stamp difference, but never more than the time the driver
-  itself saw pass (plus the slack), so a forged future stamp buys no reach. While the arm
-  rests or brakes, a setpoint must be one a motion starting at the driver's own command could
-  reach since the driver last looked for setpoints (plus the slack): a driver that stalled for a
-  while sees its commander's first setpoint that far into the motion. A setpoint stamped no
-  later than the last followed one is ignored.
+  itself saw pass (plus the slack), so a forged future stamp buys no reach. Setpoints count in
+  the order they arrive: one stamped no later than the last followed one (a commander whose
+  clock went back, a restarted executor) is judged by the driver's own elapsed time alone, so a
+  stamp far in the future can never hold later setpoints back. While the arm rests or brakes, a
+  setpoint must be one a motion starting at the driver's own command could reach since the
+  driver last looked for setpoints (plus the slack): a driver that stalled for a while sees its
+  commander's first setpoint that far into the motion.
 * **Braking.** A rejected setpoint, or no setpoint for `timeout_s` while the commanded motion
   is moving, makes the driver brake from its own command to rest as fast as the arm's full
   limits allow (jerk-limited, each joint on its own, as the executor's emergency stop), and
@@ -40,11 +42,11 @@ LIMIT_TOLERANCE_RAD = 1e-6
 """Joint limits are met within this (rounding in the commander's trajectory) [rad]."""
 RATE_TOLERANCE = 1e-3
 """Velocity and acceleration limits are met within this share (the commander's rounding)."""
-REJECTION_REASONS: tuple[str, ...] = ("joint_limits", "velocity", "acceleration", "jump", "out_of_order", "bad_message")
+REJECTION_REASONS: tuple[str, ...] = ("joint_limits", "velocity", "acceleration", "jump", "bad_message")
 """Why a setpoint was not followed (`sim/stats` counts each): outside the joint limits, a
 velocity or acceleration beyond the arm's, a jump from the last followed setpoint (or the
-driver's own command) beyond what the limits allow in the time between, stamped no later than
-the last followed one, or not decodable for this arm (wrong joints)."""
+driver's own command) beyond what the limits allow in the time between, or not decodable for
+this arm (wrong joints)."""
 
 
 class DriverState(str, enum.Enum):
@@ -112,7 +114,7 @@ class SetpointFollower:
 
     def offer(self, q: FloatArray, qd: FloatArray, qdd: FloatArray, stamp_s: float, now_s: float,
               commanded: tuple[FloatArray, FloatArray]) -> Rejection | None:
-        """Judge a setpoint; None means follow it. A rejection (other than out of order) starts a brake.
+        """Judge a setpoint; None means follow it. A rejection starts a brake of a moving arm.
 
         Args:
             q, qd, qdd: (n,) the setpoint.
@@ -131,7 +133,7 @@ class SetpointFollower:
             return None
         self.counters.rejected[rejection.reason] += 1
         self.counters.last_rejection = f"{rejection.reason}: {rejection.message}"
-        if rejection.reason != "out_of_order" and self.state is DriverState.FOLLOWING:
+        if self.state is DriverState.FOLLOWING:
             self._start_brake(now_s, commanded)
         return rejection
 
@@ -187,10 +189,10 @@ class SetpointFollower:
                 return Rejection(name, f"joint {j} {name} {values[j]:.4f} exceeds its limit {bound[j]:.4f}")
         if self.state is DriverState.FOLLOWING and self._ref is not None:
             q_r, qd_r, _, stamp_r, taken_s = self._ref
-            if stamp_s <= stamp_r:
-                return Rejection("out_of_order", f"stamp {stamp_s:.6f} is not after the last followed {stamp_r:.6f}")
-            # The stamps say how much time passed, but no more than the driver saw pass itself.
-            dt = min(stamp_s - stamp_r, max(now_s - taken_s, 0.0) + self.slack_s)
+            # The stamps say how much time passed, but no more than the driver saw pass itself; a
+            # stamp that went back (the commander's clock did) says nothing, and the driver's does.
+            seen_s = max(now_s - taken_s, 0.0) + self.slack_s
+            dt = min(stamp_s - stamp_r, seen_s) if stamp_s > stamp_r else seen_s
             reach = 0.5 * lim.acceleration * min(dt, self.timeout_s) ** 2 + lim.velocity * self.slack_s
             position_error = np.abs(q - (q_r + qd_r * dt))
             velocity_error = np.abs(qd - qd_r)

@@ -37,8 +37,8 @@ from tqdm import tqdm
 
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.evaluation.mbm import parse_mbm
-from robonav.pipeline.planning.ompl_planners import seed_ompl_once
 from robonav.pipeline.perception.map_readiness import map_complete
+from robonav.pipeline.planning.ompl_planners import seed_ompl_once
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.sim.scenes import Scene, clutter_scene, mbm_scenes, scene_from_mapping
 from robonav.pipeline.wire.messages import ErrorReply, SimStatsRequest, SimStatsResponse

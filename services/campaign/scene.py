@@ -35,7 +35,7 @@ from robonav.pipeline.wire.messages import (
 )
 from robonav.services.campaign.intruder import INTRUDER_SLIDE_S, IntruderPlacer
 from robonav.services.campaign.maps import CampaignMaps
-from robonav.services.client import RobonavClient, trajectory_outcome
+from robonav.services.client import QueryFailed, RobonavClient, trajectory_outcome
 from robonav.services.config import RobonavConfig
 from robonav.services.planner.scene_specs import object_spec
 

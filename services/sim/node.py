@@ -212,7 +212,7 @@ class SimNode(Node):
                 if rejection is None:
                     self.world.set_joint_target(q, qd)
                 else:
-                    self._report(rejection.reason, rejection.message, braking and rejection.reason != "out_of_order")
+                    self._report(rejection.reason, rejection.message, braking)
         if self.follower.tick(now_s, commanded):
             log.warning("no setpoint for %.0f ms mid-motion: braking to rest (setpoint watchdog)",
                         self.cfg.sim.setpoint_timeout_s * 1e3)

@@ -30,6 +30,7 @@ ROLES: tuple[str, ...] = ("sim", "perception", "planner", "executor", "operator"
 PUBLISHES: dict[str, tuple[str, ...]] = {
     "sim": ("robot/joint_states", "camera/cam0/cloud", "camera/cam0/depth", "sim/contacts/events"),
     "perception": ("perception/occupancy", "perception/clusters"),
+    "planner": ("planner/scene_state",),
     "executor": ("executor/setpoint", "executor/status", "executor/path"),
 }
 """Keys (under `robonav/<cell>/`) each role may publish; nobody else may."""

@@ -120,7 +120,7 @@ def test_a_motion_that_ended_at_rest_just_holds() -> None:
     assert rejection is not None and rejection.reason == "jump"
 
 
-def test_stamps_cannot_buy_reach_and_old_stamps_are_ignored() -> None:
+def test_stamps_cannot_buy_reach_and_a_clock_that_went_back_holds_nothing_back() -> None:
     follower = _follower()
     t = _follow_until(follower, 0.3)
     q, qd, qdd = _at(t)
@@ -129,11 +129,15 @@ def test_stamps_cannot_buy_reach_and_old_stamps_are_ignored() -> None:
     rejection = follower.offer(np.clip(ahead, ROBOT.lower_limits_rad, ROBOT.upper_limits_rad), qd, qdd, 1000.0 + t + 10.0,
                                t, (q, qd))
     assert rejection is not None and rejection.reason in ("jump", "joint_limits")
+    # The commander's clock went back (a restarted executor): the motion's next setpoint is still
+    # followed, judged by the driver's own time; a stamp far ahead earlier holds nothing back.
     follower = _follower()
     t = _follow_until(follower, 0.3)
-    rejection = follower.offer(*_at(t - 0.1), 1000.0 + t - 0.1, t, _at(t)[:2])
-    assert rejection is not None and rejection.reason == "out_of_order"
-    assert follower.state is DriverState.FOLLOWING and follower.counters.brakes == 0  # ignored, no brake
+    assert follower.offer(*_at(t + 0.001), 5.0, t + 0.001, _at(t)[:2]) is None
+    assert follower.state is DriverState.FOLLOWING and follower.counters.brakes == 0
+    # A stale setpoint from far back along the motion is a jump from where the arm is: it brakes.
+    rejection = follower.offer(*_at(t - 0.2), 4.0, t + 0.002, _at(t + 0.001)[:2])
+    assert rejection is not None and rejection.reason == "jump"
 
 
 def test_a_driver_that_stalled_takes_a_motion_from_rest_that_far_in() -> None:

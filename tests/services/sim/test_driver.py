@@ -73,7 +73,7 @@ def driver_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Rob
         session.close()
     finally:
         codes = stack.close()
-    assert codes == {"sim": 0}
+    assert codes == {"sim": 0, "router": 0}
 
 
 def _stats(client: RobonavClient) -> SimStatsResponse:
