@@ -331,6 +331,8 @@ def test_odd_joint_states_never_hold_back_the_default_start(planner: tuple[Plann
         return JointState(stamp=stamp, names=joint_names, position=q, velocity=np.zeros(len(q))).to_wire()
 
     def start_of_plan() -> np.ndarray:
+        # A fresh map before each plan: on a loaded machine the test outlasts occupancy_max_age_s.
+        session.put(keys.occupancy, _wall_map(-0.9, time.time()).to_wire())
         reply = client.plan(GOAL, allowed_planning_time=2.0, seed=1)
         assert isinstance(reply, PlanResponse), reply
         return reply.path[0]
