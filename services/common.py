@@ -11,6 +11,7 @@ import signal
 import socket
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
@@ -157,11 +158,21 @@ def answer_query(query: zenoh.Query, handler: Callable[[zenoh.Query], None], nam
         handler(query)
     except ProtocolError as exc:
         _reply_error_safely(query, exc.code, exc.message, exc.details, name)
+        _release_frames(exc)
     except Exception as exc:  # a service never dies on input; the error is logged and answered
         log.exception("%s: unexpected error", name)
         _reply_error_safely(query, ErrorCode.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}", None, name)
+        _release_frames(exc)
     finally:
         query.drop()
+
+
+def _release_frames(exc: BaseException) -> None:
+    """Clear the locals of the frames an answered error's traceback holds. Those frames hold
+    the request's arrays and timed trajectories (ruckig and OMPL objects), and a reference cycle
+    through them would keep them until a full garbage collection, or past the interpreter's
+    end, where the bindings report them as leaked."""
+    traceback.clear_frames(exc.__traceback__)
 
 
 def _reply_error_safely(query: zenoh.Query, code: ErrorCode, message: str, details: dict[str, Any] | None,

@@ -120,6 +120,9 @@ class ExecutorNode(Node):
         # gets the feeder the GIL sooner, and frozen start-up objects (robot model, meshes, FCL)
         # keep the cyclic collector's full passes short.
         sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
+        # Collect first: what is frozen is never collected, and garbage frozen now (reference
+        # cycles holding ruckig or OMPL objects) would outlive the interpreter.
+        gc.collect()
         gc.freeze()
         # An execute (time parameterisation: corner blends) runs on a worker thread, one at a time in
         # arrival order; a stop is short and is answered on Zenoh's callback thread, never behind one.
@@ -301,6 +304,9 @@ class ExecutorNode(Node):
         self._stream.close()  # it brakes a moving arm to rest first
         self._status_pub.undeclare()
         self._path_pub.undeclare()
+        # Frozen objects are never collected: give them back, so this node's cycles are freed
+        # before the interpreter ends and the bindings find nothing of theirs left over.
+        gc.unfreeze()
 
 
 def main(argv: list[str] | None = None) -> int:
