@@ -5,6 +5,7 @@ Any language can do the same with Zenoh and msgpack alone (see `examples/plan_cl
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Sequence
@@ -33,6 +34,8 @@ from robonav.pipeline.wire.messages import (
 )
 from robonav.services.common import declare_latched_subscriber
 from robonav.services.keys import Keys
+
+log = logging.getLogger(__name__)
 
 M = TypeVar("M", bound=Message)
 
@@ -155,6 +158,8 @@ class RobonavClient:
         self.last_replier: str | None = None
         """Zenoh id of the session that sent the reply the last query or race returned."""
         self._cond = threading.Condition()
+        self.dropped: dict[str, int] = {}
+        """Malformed publications dropped, per attribute (`joint_state`, `occupancy`, ...)."""
         self.joint_state: JointState | None = None
         self.occupancy: Occupancy | None = None
         self.status: ExecutorStatus | None = None
@@ -166,7 +171,18 @@ class RobonavClient:
 
     def _on(self, cls: type[Message], attr: str):  # noqa: ANN202 - a zenoh callback
         def callback(sample: zenoh.Sample) -> None:
-            message = cls.from_wire(sample.payload.to_bytes())
+            try:
+                message = cls.from_wire(sample.payload.to_bytes())
+            except ProtocolError as exc:
+                # Someone else's malformed publication: the last good message stays, and the
+                # client's user sees one warning per topic, not a traceback per sample.
+                with self._cond:
+                    self.dropped[attr] = self.dropped.get(attr, 0) + 1
+                    first = self.dropped[attr] == 1
+                if first:
+                    log.warning("dropped a malformed %s on %s (%s: %s); further ones are counted in "
+                                "RobonavClient.dropped", cls.__name__, sample.key_expr, exc.code.value, exc.message)
+                return
             with self._cond:
                 setattr(self, attr, message)
                 self._cond.notify_all()

@@ -7,10 +7,11 @@ import threading
 import time
 
 import msgpack
+import numpy as np
 import pytest
 import zenoh
 
-from robonav.pipeline.wire.messages import ErrorReply, StopRequest, StopResponse
+from robonav.pipeline.wire.messages import ErrorReply, JointState, StopRequest, StopResponse
 from robonav.services.client import QueryFailed, RobonavClient, error_reply, query_one
 
 from .conftest import StandInPeer
@@ -138,3 +139,19 @@ def test_a_race_with_only_unusable_replies_is_query_failed(bus: tuple[zenoh.Sess
         robonav.race(KEY, StopRequest(), StopResponse, 5.0)
     robonav.close()
     peer.close()
+
+
+def test_malformed_publications_are_dropped_and_counted_keeping_the_last_good_one(
+        bus: tuple[zenoh.Session, zenoh.Session]) -> None:
+    publisher, session = bus
+    client = RobonavClient(session)
+    try:
+        good = JointState(stamp=1.0, names=("a", "b"), position=np.array([0.1, 0.2]), velocity=np.zeros(2))
+        for payload in (b"\xc1 not msgpack", msgpack.packb({"v": 1, "stamp": "soon"}), good.to_wire(),
+                        msgpack.packb([1, 2, 3])):
+            publisher.put(client.keys.joint_states, payload)
+        assert client.wait_for(lambda: client.dropped.get("joint_state", 0) == 3 and client.joint_state is not None,
+                               5.0), client.dropped
+        np.testing.assert_array_equal(client.joint_state.position, good.position)
+    finally:
+        client.close()
