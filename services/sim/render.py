@@ -236,7 +236,10 @@ def worker_main(cfg: RobonavConfig, camera_index: int, conn: multiprocessing.con
             started = time.perf_counter()
             renderer.apply(job)
             renderer.render(job)
-            conn.send(("done", (time.perf_counter() - started) * 1e3))
+            try:
+                conn.send(("done", (time.perf_counter() - started) * 1e3))
+            except OSError:  # BrokenPipeError: the sim process is gone (killed mid-frame)
+                break
         while renderer.waiting:  # frames already captured still go out
             time.sleep(renderer.publish_due() or 0.0)
     finally:
