@@ -248,4 +248,5 @@ def main(argv: list[str] | None = None) -> int:
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--scene-file", help="keep the planning scene in this file across restarts (planner.scene_file)")
     known, rest = pre.parse_known_args(argv)
-    return run_service("planner", rest, lambda cfg, session: PlannerNode(cfg, session, scene_file=known.scene_file))
+    return run_service("planner", rest, lambda cfg, session: PlannerNode(cfg, session, scene_file=known.scene_file),
+                       parents=(pre,))
