@@ -42,6 +42,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
                                                      "the effective config: `robonav config check|print [FILE]`"),
     "scene": ("robonav.services.tools.scene", "the planner's collision objects: `robonav scene add|move|remove|attach|"
                                              "detach|list|clear`"),
+    "schema": ("robonav.services.tools.schema", "write the JSON Schema of every wire message: `robonav schema --out DIR`"),
 }
 
 NUMBA_CACHE_ENV = "NUMBA_CACHE_DIR"

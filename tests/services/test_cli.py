@@ -34,6 +34,7 @@ EXPECTED_OPTIONS = {
     ("config", "print"): [],
     ("scene", "add"): ["--position", "--quat", "--size", "--radius", "--length", "--mesh", "--attach", "--touch-links"],
     ("scene", "attach"): ["--link", "--touch-links"],
+    ("schema",): ["--out", "--check"],
 }
 
 
