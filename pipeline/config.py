@@ -23,10 +23,16 @@ class ConfigError(ValueError):
     def __init__(self, source: str, key: str, message: str) -> None:
         self.source = source
         self.key = key
+        self.detail = message
         super().__init__(f"{source}: key '{key}': {message}")
 
 
-def from_mapping(cls: type[T], data: Any, *, source: str = "<config>", key: str = "") -> T:
+class _Reported(ConfigError):
+    """Errors below this key are already in the caller's list: give up on this value only."""
+
+
+def from_mapping(cls: type[T], data: Any, *, source: str = "<config>", key: str = "",
+                 errors: list[ConfigError] | None = None) -> T:
     """Build dataclass `cls` from `data`, rejecting unknown keys and wrong types.
 
     Args:
@@ -34,6 +40,10 @@ def from_mapping(cls: type[T], data: Any, *, source: str = "<config>", key: str 
         data: The parsed mapping (e.g. from YAML). `None` means "all defaults".
         source: Where the data came from (a file name), used in error messages.
         key: Dotted prefix of `data` inside the source, used in error messages.
+        errors: Collect every error here instead of raising the first: each bad key is
+            reported and the rest still checked. A section with a bad key skips its own
+            cross-key checks (they would only repeat the fault); then a ConfigError is
+            raised after all, once everything was checked.
 
     Returns:
         An instance of `cls`. Validation in its `__post_init__` has run; a `ValueError`
@@ -45,17 +55,31 @@ def from_mapping(cls: type[T], data: Any, *, source: str = "<config>", key: str 
         raise ConfigError(source, key or "<root>", f"expected a mapping for {cls.__name__}, got {_kind(data)}")
     hints = get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
-    unknown = sorted(str(k) for k in data if k not in fields)
-    if unknown:
-        where = _join(key, unknown[0])
-        raise ConfigError(source, where, f"unknown key (known keys of {cls.__name__}: {', '.join(sorted(fields))})")
+    failed = False
+
+    def fail(error: ConfigError) -> None:
+        nonlocal failed
+        if errors is None:
+            raise error
+        failed = True
+        if not isinstance(error, _Reported):
+            errors.append(error)
+
+    for unknown in sorted(str(k) for k in data if k not in fields):
+        fail(ConfigError(source, _join(key, unknown),
+                         f"unknown key (known keys of {cls.__name__}: {', '.join(sorted(fields))})"))
     kwargs: dict[str, Any] = {}
     for name, field in fields.items():
         sub_key = _join(key, name)
-        if name in data:
-            kwargs[name] = _convert(hints[name], data[name], source=source, key=sub_key)
-        elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
-            raise ConfigError(source, sub_key, f"required key is missing (expected {_type_name(hints[name])})")
+        try:
+            if name in data:
+                kwargs[name] = _convert(hints[name], data[name], source=source, key=sub_key, errors=errors)
+            elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
+                fail(ConfigError(source, sub_key, f"required key is missing (expected {_type_name(hints[name])})"))
+        except ConfigError as exc:
+            fail(exc)
+    if failed:
+        raise _Reported(source, key or "<root>", "has errors")
     try:
         return cls(**kwargs)
     except ConfigError:
@@ -64,7 +88,18 @@ def from_mapping(cls: type[T], data: Any, *, source: str = "<config>", key: str 
         raise ConfigError(source, key or "<root>", str(exc)) from exc
 
 
-def _convert(tp: Any, value: Any, *, source: str, key: str) -> Any:
+def collect_errors(cls: type[T], data: Any, *, source: str = "<config>") -> tuple[T | None, list[ConfigError]]:
+    """`from_mapping` that reports every error: (the config, []) or (None, every error found)."""
+    errors: list[ConfigError] = []
+    try:
+        return from_mapping(cls, data, source=source, errors=errors), []
+    except _Reported:
+        return None, errors
+    except ConfigError as exc:
+        return None, [*errors, exc]
+
+
+def _convert(tp: Any, value: Any, *, source: str, key: str, errors: list[ConfigError] | None = None) -> Any:
     origin = get_origin(tp)
     args = get_args(tp)
     if tp is Any:
@@ -72,26 +107,39 @@ def _convert(tp: Any, value: Any, *, source: str, key: str) -> Any:
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
-        errors = []
-        for arg in args:
-            if arg is type(None):
-                continue
+        choices = [arg for arg in args if arg is not type(None)]
+        if errors is not None and len(choices) == 1 and dataclasses.is_dataclass(choices[0]):
+            return _convert(choices[0], value, source=source, key=key, errors=errors)  # a section: check its every key
+        for arg in choices:
             try:
                 return _convert(arg, value, source=source, key=key)
-            except ConfigError as exc:
-                errors.append(exc)
+            except ConfigError:
+                pass
         raise ConfigError(source, key, f"expected {_type_name(tp)}, got {_kind(value)}")
     if origin is Literal:
         if value not in args:
             raise ConfigError(source, key, f"expected one of {list(args)}, got {value!r}")
         return value
     if dataclasses.is_dataclass(tp):
-        return from_mapping(tp, value, source=source, key=key)  # type: ignore[arg-type]
+        return from_mapping(tp, value, source=source, key=key, errors=errors)  # type: ignore[arg-type]
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(source, key, f"expected a list ({_type_name(tp)}), got {_kind(value)}")
         if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(args[0], v, source=source, key=f"{key}[{i}]") for i, v in enumerate(value))
+            if errors is None:
+                return tuple(_convert(args[0], v, source=source, key=f"{key}[{i}]") for i, v in enumerate(value))
+            items, failed = [], False
+            for i, v in enumerate(value):  # every item is checked, also after a bad one
+                try:
+                    items.append(_convert(args[0], v, source=source, key=f"{key}[{i}]", errors=errors))
+                except _Reported:
+                    failed = True
+                except ConfigError as exc:
+                    errors.append(exc)
+                    failed = True
+            if failed:
+                raise _Reported(source, key, "has errors")
+            return tuple(items)
         if len(value) != len(args):
             raise ConfigError(source, key, f"expected a list of {len(args)} items, got {len(value)}")
         return tuple(_convert(a, v, source=source, key=f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value)))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import os
 import sys
 from pathlib import Path
@@ -37,6 +38,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
                                               "[--json FILE]`"),
     "precompile": ("robonav.services.tools.precompile", "compile every numba kernel into the compile cache "
                                                      "(`make setup` and the Docker build run it)"),
+    "config": ("robonav.services.tools.config_check", "check a config file (every error, with its line) or print "
+                                                     "the effective config: `robonav config check|print [FILE]`"),
+    "scene": ("robonav.services.tools.scene", "the planner's collision objects: `robonav scene add|move|remove|attach|"
+                                             "detach|list|clear`"),
+    "schema": ("robonav.services.tools.schema", "write the JSON Schema of every wire message: `robonav schema --out DIR`"),
 }
 
 NUMBA_CACHE_ENV = "NUMBA_CACHE_DIR"
@@ -74,18 +80,45 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     use_numba_cache_dir()  # before any command imports numba; services started by `up` inherit it
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(prog="robonav", description="Perception-to-plan pipeline for robot arms over Zenoh.")
-    sub = parser.add_subparsers(dest="command", required=True)
-    serve = sub.add_parser("serve", help="run one service", add_help=False)
+    parser = argparse.ArgumentParser(prog="robonav", description="Perception-to-plan pipeline for robot arms over Zenoh.",
+                                     epilog="`robonav COMMAND --help` lists a command's own options.")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    serve = sub.add_parser("serve", help="run one service: `robonav serve SERVICE [--help]`",
+                           description="Run one service until SIGINT/SIGTERM; `robonav serve SERVICE --help` lists its options.")
     serve.add_argument("service", choices=sorted(SERVICE_MODULES))
     for name, (_, help_text) in COMMANDS.items():
         sub.add_parser(name, help=help_text, add_help=False)
-    args, rest = parser.parse_known_args(argv)
+    # Only the command (and the service) is ours: everything after it, `--help` included, is the
+    # command's own, so each command's parser answers its own `--help`.
+    split = _command_end(argv)
+    args = parser.parse_args(argv[:split])
+    rest = argv[split:]
     if args.command == "serve":
         module = importlib.import_module(SERVICE_MODULES[args.service])
     else:
         module = importlib.import_module(COMMANDS[args.command][0])
     return int(module.main(rest))
+
+
+def _command_end(argv: list[str]) -> int:
+    """Index after `robonav`'s own part of `argv`: its options up to the command, then the
+    command, and for `serve` the service name (when it is one)."""
+    for i, arg in enumerate(argv):
+        if arg.startswith("-"):
+            continue
+        if arg == "serve":  # without a service name `serve`'s own parser answers (its --help, or the error)
+            return i + 2 if i + 1 < len(argv) and argv[i + 1] in SERVICE_MODULES else len(argv)
+        return i + 1
+    return len(argv)
+
+
+def package_version() -> str:
+    """The installed distribution's version (pyproject.toml's `version`)."""
+    try:
+        return importlib.metadata.version("robonav-arm")
+    except importlib.metadata.PackageNotFoundError:  # run from a tree that was never installed
+        return "unknown"
 
 
 if __name__ == "__main__":

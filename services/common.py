@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import re
 import signal
 import socket
@@ -278,9 +279,48 @@ def instance_name() -> str:
     return match.group(1)[:12] if match else socket.gethostname()
 
 
-def setup_logging(level: str = "INFO") -> None:
-    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+LOG_FORMATS: tuple[str, ...] = ("text", "json")
+LOG_FORMAT_ENV = "ROBONAV_LOG_FORMAT"
+"""`--log-format`'s default; `setup_logging` sets it, so the processes a command starts
+(`robonav up`'s services, the executor's setpoint stream) log the same way."""
+TEXT_LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+class JsonLogFormatter(logging.Formatter):
+    """One JSON object per line (`ts`, `level`, `logger`, `message`, `pid`, and `exc` with a
+    traceback), what container log collectors (journald, Loki, CloudWatch) parse without rules."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        entry: dict[str, Any] = {
+            "ts": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z",
+            "level": record.levelname, "logger": record.name, "message": record.getMessage(), "pid": record.process,
+        }
+        if record.exc_info:
+            entry["exc"] = self.formatException(record.exc_info)
+        return json.dumps(entry, ensure_ascii=False, default=str)
+
+
+def add_logging_arguments(parser: argparse.ArgumentParser, default_level: str = "INFO") -> None:
+    """`--log-level` (one of LOG_LEVELS, any case) and `--log-format text|json` on a command's parser."""
+    parser.add_argument("--log-level", default=default_level, type=str.upper, choices=LOG_LEVELS,
+                        help=f"log threshold (default {default_level})")
+    parser.add_argument("--log-format", default=os.environ.get(LOG_FORMAT_ENV) if os.environ.get(LOG_FORMAT_ENV)
+                        in LOG_FORMATS else "text", choices=LOG_FORMATS,
+                        help=f"text lines, or one JSON object per line for containers (default: ${LOG_FORMAT_ENV} or text)")
+
+
+def setup_logging(level: str = "INFO", log_format: str = "text") -> None:
+    """Configure the root logger; raises ValueError for a level or format that is not one of
+    LOG_LEVELS / LOG_FORMATS (argparse's choices catch them first on the command line)."""
+    if level.upper() not in LOG_LEVELS:
+        raise ValueError(f"log level must be one of {list(LOG_LEVELS)}, got {level!r}")
+    if log_format not in LOG_FORMATS:
+        raise ValueError(f"log format must be one of {list(LOG_FORMATS)}, got {log_format!r}")
+    handler = logging.StreamHandler()
+    handler.setFormatter(JsonLogFormatter() if log_format == "json" else logging.Formatter(TEXT_LOG_FORMAT))
+    logging.basicConfig(level=getattr(logging, level.upper()), handlers=[handler])
+    os.environ[LOG_FORMAT_ENV] = log_format
 
 
 class Node:
@@ -295,18 +335,20 @@ class Node:
 
 
 def parse_args_and_config(prog: str, description: str, argv: list[str] | None,
+                          parents: tuple[argparse.ArgumentParser, ...] = (),
                           ) -> tuple[argparse.Namespace, RobonavConfig] | None:
-    """Parse `--config` and `--log-level`, set up logging, load the config.
+    """Parse `--config`, `--zenoh-config`, `--log-level` and `--log-format` (and the options of
+    `parents`, so `--help` lists them too), set up logging, load the config.
 
     Returns None after logging the error when the config is bad (callers exit with code 2).
     """
-    parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser = argparse.ArgumentParser(prog=prog, description=description, parents=list(parents))
     parser.add_argument("--config", help="YAML config file (default: the packaged configs/default.yaml)")
-    parser.add_argument("--log-level", default="INFO")
     parser.add_argument("--zenoh-config", metavar="FILE",
                         help="Zenoh JSON5 config for this process (TLS, credentials); overrides zenoh.config_file")
+    add_logging_arguments(parser)
     args = parser.parse_args(argv)
-    setup_logging(args.log_level)
+    setup_logging(args.log_level, args.log_format)
     try:
         cfg = load_config(args.config)
         if args.zenoh_config is not None:
@@ -319,12 +361,13 @@ def parse_args_and_config(prog: str, description: str, argv: list[str] | None,
         return None
 
 
-def run_service(name: str, argv: list[str] | None, build: Callable[[RobonavConfig, zenoh.Session], Node]) -> int:
+def run_service(name: str, argv: list[str] | None, build: Callable[[RobonavConfig, zenoh.Session], Node],
+                parents: tuple[argparse.ArgumentParser, ...] = ()) -> int:
     """parse → config → session → build node → liveliness token → spin → teardown.
 
     Exit codes: 0 after a clean stop (SIGINT/SIGTERM), 2 for a bad config.
     """
-    loaded = parse_args_and_config(f"robonav serve {name}", f"Run the {name} service.", argv)
+    loaded = parse_args_and_config(f"robonav serve {name}", f"Run the {name} service.", argv, parents)
     if loaded is None:
         return 2
     _, cfg = loaded

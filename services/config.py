@@ -8,10 +8,11 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import yaml
 
 from robonav.pipeline.camera import CameraConfig, CameraExtrinsics
-from robonav.pipeline.config import ConfigError, from_mapping, require
+from robonav.pipeline.config import ConfigError, collect_errors, from_mapping, require
 from robonav.pipeline.perception.config import PerceptionConfig
 from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.robot.config import RobotConfig
@@ -165,6 +166,99 @@ def load_config(path: str | Path | None = None) -> RobonavConfig:
     except yaml.YAMLError as exc:
         raise ConfigError(str(file), "<file>", f"invalid YAML: {exc}") from exc
     return _with_extrinsics(from_mapping(RobonavConfig, data, source=str(file)), file)
+
+
+@dataclass(frozen=True)
+class ConfigIssue:
+    """One error of a config file, where it is: `file:line: key 'k': message` (line 0: no line)."""
+
+    file: str
+    line: int
+    key: str
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.file}:{self.line}: key '{self.key}': {self.message}" if self.line else \
+            f"{self.file}: key '{self.key}': {self.message}"
+
+
+def check_config(path: str | Path) -> tuple[RobonavConfig | None, list[ConfigIssue]]:
+    """Read a config file and report every error at once, each with its line.
+
+    Every key is checked, also after a bad one; a section with a bad key skips its cross-key
+    checks (they would repeat the fault). Duplicate keys, which YAML loaders silently let the
+    last one win, are errors here. Returns (the config, []) or (None, the errors in line order).
+    """
+    file = Path(path)
+    try:
+        text = file.read_text(encoding="utf-8")
+    except OSError as exc:
+        return None, [ConfigIssue(str(file), 0, "<file>", f"cannot read: {exc.strerror or exc}")]
+    try:
+        # The node tree keeps where every key and value starts (PyYAML's marks, 0-based).
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        data = yaml.safe_load(text)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        return None, [ConfigIssue(str(file), mark.line + 1 if mark else 0, "<file>", f"invalid YAML: {exc.problem}")]
+    except yaml.YAMLError as exc:
+        return None, [ConfigIssue(str(file), 0, "<file>", f"invalid YAML: {exc}")]
+    lines: dict[str, int] = {}
+    issues = [ConfigIssue(str(file), line, key, "duplicate key (YAML would keep only the last)")
+              for key, line in _key_lines(root, "", lines)]
+    cfg, errors = collect_errors(RobonavConfig, data, source=str(file))
+    issues += [ConfigIssue(str(file), _line_of(e.key, lines), e.key, e.detail) for e in errors]
+    if cfg is not None and not issues:
+        try:
+            cfg = _with_extrinsics(cfg, file)
+        except ConfigError as exc:
+            issues.append(ConfigIssue(str(file), _line_of(exc.key, lines), exc.key, exc.detail))
+    issues.sort(key=lambda issue: issue.line)
+    return (cfg if not issues else None), issues
+
+
+def _key_lines(node: yaml.Node | None, prefix: str, lines: dict[str, int]) -> list[tuple[str, int]]:
+    """Fill `lines` with dotted key path -> 1-based line (`a.b`, `a[0].b`); returns duplicate keys."""
+    duplicates: list[tuple[str, int]] = []
+    if isinstance(node, yaml.MappingNode):
+        for key_node, value_node in node.value:
+            path = f"{prefix}.{key_node.value}" if prefix else str(key_node.value)
+            if path in lines:
+                duplicates.append((path, key_node.start_mark.line + 1))
+            lines[path] = key_node.start_mark.line + 1
+            duplicates += _key_lines(value_node, path, lines)
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            path = f"{prefix}[{i}]"
+            lines[path] = item.start_mark.line + 1
+            duplicates += _key_lines(item, path, lines)
+    return duplicates
+
+
+def _line_of(key: str, lines: dict[str, int]) -> int:
+    """Line of `key`, else of the nearest enclosing key that is in the file (a missing key: its section)."""
+    while key:
+        if key in lines:
+            return lines[key]
+        cut = max(key.rfind("."), key.rfind("["))
+        key = key[:cut] if cut > 0 else ""
+    return 1 if lines else 0
+
+
+def config_to_mapping(cfg: Any) -> Any:
+    """A config (or any of its sections) as plain YAML data: every key, defaults included;
+    `load_config` reads it back into an equal config."""
+    if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type):
+        return {f.name: config_to_mapping(getattr(cfg, f.name)) for f in dataclasses.fields(cfg) if f.init}
+    if isinstance(cfg, (tuple, list)):
+        return [config_to_mapping(v) for v in cfg]
+    if isinstance(cfg, dict):
+        return {k: config_to_mapping(v) for k, v in cfg.items()}
+    if isinstance(cfg, np.ndarray):
+        return cfg.tolist()
+    if isinstance(cfg, np.generic):
+        return cfg.item()
+    return cfg
 
 
 def _with_extrinsics(cfg: RobonavConfig, file: Path) -> RobonavConfig:

@@ -63,6 +63,16 @@ class Keys:
         return f"{self.root}/planner/scene_state"
 
     @property
+    def robot_description(self) -> str:
+        """The robot the planner plans for (URDF, planning joints, limits), latched (discovery)."""
+        return f"{self.root}/robot/description"
+
+    @property
+    def cameras(self) -> str:
+        """Every camera of the cell (intrinsics, world_from_camera, output), latched by the sim (discovery)."""
+        return f"{self.root}/cameras"
+
+    @property
     def execute(self) -> str:
         return f"{self.root}/executor/execute"
 

@@ -119,6 +119,7 @@ class Message:
         """Decode the fields of a map without `v`; `prefix` is the key path of a nested message."""
         hints = get_type_hints(cls)
         fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+        obj = _drop_ignorable(obj, set(fields), cls.__name__, prefix)
         unknown = sorted(str(k) for k in obj if k not in fields)
         if unknown:
             raise ProtocolError(ErrorCode.MALFORMED_MESSAGE,
@@ -152,6 +153,23 @@ class Message:
     @classmethod
     def from_wire(cls: type[M], payload: bytes) -> M:
         return cls.from_dict(unpack(payload))
+
+
+IGNORABLE_KEY = "ignorable"
+
+
+def _drop_ignorable(obj: dict[str, Any], known: set[str], owner: str, prefix: str) -> dict[str, Any]:
+    """The compatibility rule (docs/protocol.md, "Versions"): a map may list in `ignorable` keys
+    a receiver that does not know them may ignore, so a newer peer's added optional keys do not
+    break an older one. A listed key this side knows is decoded and checked as ever; an unknown
+    key that is not listed is still MALFORMED_MESSAGE (a typo is never silently ignored)."""
+    if IGNORABLE_KEY not in obj:
+        return obj
+    listed = obj[IGNORABLE_KEY]
+    if not isinstance(listed, list) or not all(isinstance(k, str) for k in listed):
+        raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{prefix}{IGNORABLE_KEY}' must be a list of strings",
+                            {"key": prefix + IGNORABLE_KEY})
+    return {k: v for k, v in obj.items() if k != IGNORABLE_KEY and (k in known or k not in listed)}
 
 
 def unpack(payload: bytes) -> Any:
@@ -251,6 +269,7 @@ def _decode_value(tp: Any, value: Any, *, key: str, owner: str) -> Any:
         if not isinstance(value, dict):
             raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must be a map", {"key": key})
         names = {f.name for f in dataclasses.fields(tp)}
+        value = _drop_ignorable(value, names, owner, f"{key}.")
         if set(value) - names or names - set(value):
             raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must have exactly the keys {sorted(names)}", {"key": key})
         sub_hints = get_type_hints(tp)

@@ -913,9 +913,95 @@ class StackStatusResponse(Message):
     ok: bool = True
 
 
+@dataclass(frozen=True)
+class RobotDescription(Message):
+    """`robot/description` (latched pub, planner): the robot the planner plans for, so a client
+    needs nothing but the router's address (MoveIt's `robot_description`)."""
+
+    stamp: float
+    """When the planner started [s]."""
+    name: str
+    urdf: str
+    """The URDF text the planner loaded; mesh file names in it are as the URDF gives them."""
+    base_frame: str
+    """The robot's base link: the `world` frame of every message."""
+    end_effector_link: str
+    """The default link of Cartesian goals."""
+    joint_names: tuple[str, ...]
+    """The planning joints, in the order of every joint vector."""
+    lower_limits: FloatArray = array_field("<f8", (None,))
+    """(n,) position limits the planner enforces (the URDF's, or the config's) [rad, or m for prismatic]."""
+    upper_limits: FloatArray = array_field("<f8", (None,))
+    max_velocity: FloatArray = array_field("<f8", (None,))
+    """(n,) [rad/s]"""
+    max_acceleration: FloatArray = array_field("<f8", (None,))
+    """(n,) [rad/s^2]"""
+    max_jerk: FloatArray = array_field("<f8", (None,))
+    """(n,) [rad/s^3]"""
+    home_position: FloatArray | None = array_field("<f8", (None,), optional=True)
+    """(n,) the configured home state [rad]."""
+    fixed_joint_positions: dict[str, float] = field(default_factory=dict)
+    """Non-planning joints held at these positions (e.g. the fingers) [rad or m]."""
+    allowed_collision_pairs: tuple[str, ...] = ()
+    """'link|link' pairs never checked against each other (the SRDF's disable_collisions)."""
+    padding_m: float = 0.0
+    """Padding the planner adds around every link [m]."""
+    srdf: str | None = None
+    """An SRDF, when the robot has one (none yet: `allowed_collision_pairs` carries its content)."""
+
+    def __post_init__(self) -> None:
+        _check_same_length("RobotDescription", self.joint_names, lower_limits=self.lower_limits,
+                           upper_limits=self.upper_limits, max_velocity=self.max_velocity,
+                           max_acceleration=self.max_acceleration, max_jerk=self.max_jerk,
+                           home_position=self.home_position)
+
+
+CAMERA_OUTPUTS: tuple[str, ...] = ("cloud", "depth", "both")
+
+
+@dataclass(frozen=True, eq=False)
+class CameraDescription(Message):
+    """One camera in a `cameras` publication; travels nested, without `v`."""
+
+    camera_id: str
+    intrinsics: CameraIntrinsics
+    world_from_camera: FloatArray = array_field("<f8", (4, 4))
+    """(4, 4) pose of the optical frame (z forward, x right, y down) in `world`: the calibrated
+    one when the camera has an extrinsics file (what perception uses), else the configured one."""
+    output: str = "cloud"
+    """What it publishes: `cloud` (camera/<id>/cloud), `depth` (camera/<id>/depth) or `both`."""
+    near_m: float = 0.0
+    far_m: float = 0.0
+    """Depth range [m]."""
+    rate_hz: float = 0.0
+    """Frames per second."""
+
+    def __post_init__(self) -> None:
+        if self.output not in CAMERA_OUTPUTS:
+            raise ValueError(f"CameraDescription: output must be one of {list(CAMERA_OUTPUTS)}, got {self.output!r}")
+
+    def _key(self) -> tuple[Any, ...]:
+        return tuple((v.shape, v.tobytes()) if isinstance(v, np.ndarray) else v
+                     for v in (getattr(self, f) for f in self.__dataclass_fields__))
+
+    def __eq__(self, other: object) -> bool:  # the pose is an array: compared by value, as SceneObjectSpec
+        return isinstance(other, CameraDescription) and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
+
+@dataclass(frozen=True)
+class Cameras(Message):
+    """`cameras` (latched pub, sim or the camera drivers): every camera of the cell."""
+
+    stamp: float
+    cameras: tuple[CameraDescription, ...] = ()
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     JointState, PointCloud, Occupancy, PlanRequest, PlanResponse, ExecuteRequest, ExecuteResponse,
     StopRequest, StopResponse, Setpoint, ExecutorStatus, ContactsRequest, ContactsResponse, ErrorReply,
     SceneRequest, SceneResponse, DepthImage, ContactEvent, SimObjectsRequest, SimObjectsResponse, SimStatsRequest,
-    SimStatsResponse, PlanningSceneState, StackStatusRequest, StackStatusResponse,
+    SimStatsResponse, PlanningSceneState, StackStatusRequest, StackStatusResponse, RobotDescription, Cameras,
 )

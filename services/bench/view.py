@@ -27,7 +27,7 @@ import numpy as np
 from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.perception.depth import points_from_depth
 from robonav.pipeline.wire.messages import JointState, PointCloud
-from robonav.services.common import open_session, setup_logging
+from robonav.services.common import add_logging_arguments, open_session, setup_logging
 from robonav.services.config import ZenohConfig, load_config
 from robonav.services.keys import Keys
 from robonav.services.view.app import ViewNode, ViewOptions
@@ -200,9 +200,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="the view's points per cloud (default %(default)s)")
     parser.add_argument("--size", default="1280x800", help="page size WIDTHxHEIGHT (default %(default)s)")
     parser.add_argument("--json", dest="json_path", help="also write the result to this file")
-    parser.add_argument("--log-level", default="WARNING")
+    add_logging_arguments(parser, "WARNING")
     args = parser.parse_args(argv)
-    setup_logging(args.log_level)
+    setup_logging(args.log_level, args.log_format)
     width, height = (int(v) for v in args.size.lower().split("x"))
     options = ViewOptions(port=0, cloud_rate_hz=args.cloud_rate_hz, max_cloud_points=args.max_cloud_points)
     result = run(args.seconds, args.cloud_hz, options, width, height)

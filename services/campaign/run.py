@@ -45,7 +45,7 @@ from robonav.pipeline.wire.messages import ErrorReply, SimStatsRequest, SimStats
 from robonav.services.campaign.monitors import Monitors
 from robonav.services.campaign.scene import MOVING_SPEED_FACTOR, SceneRunner
 from robonav.services.client import QueryFailed, RobonavClient
-from robonav.services.common import open_session, setup_logging
+from robonav.services.common import add_logging_arguments, open_session, setup_logging
 from robonav.services.config import RobonavConfig, default_config_path, load_config
 from robonav.services.keys import SERVICES
 from robonav.services.stack.up import Stack
@@ -83,7 +83,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--moving-speed", type=float, default=MOVING_SPEED_FACTOR,
                         help="a moving scene's goal is driven at this share of the campaign's speed "
                              f"(default {MOVING_SPEED_FACTOR}: at full speed few paths leave room for the box)")
-    parser.add_argument("--log-level", default="WARNING")
+    add_logging_arguments(parser, "WARNING")
     args = parser.parse_args(argv)
     if args.scenes < 1 or args.goals_per_scene < 1:
         parser.error("--scenes and --goals-per-scene must be >= 1")
@@ -342,7 +342,7 @@ def _interrupt(signum: int, _frame: Any) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    setup_logging(args.log_level)
+    setup_logging(args.log_level, args.log_format)
     signal.signal(signal.SIGTERM, _interrupt)
     source = Path(args.config) if args.config else default_config_path()
     with tempfile.TemporaryDirectory(prefix="robonav-campaign-") as tmp:

@@ -36,6 +36,7 @@ import numpy as np
 from robonav.pipeline.trajectory.setpoint_table import SetpointTable, sample_table
 from robonav.pipeline.trajectory.trajectory import JointTrajectory, TrajectoryLimits
 from robonav.pipeline.types import FloatArray
+from robonav.services.common import LOG_FORMAT_ENV, LOG_FORMATS, setup_logging
 from robonav.services.config import ZenohConfig
 
 log = logging.getLogger("robonav.executor.stream")
@@ -360,7 +361,8 @@ def wall_from_monotonic(tries: int = 5) -> float:
 
 def _run(spec: _StreamSpec, conn: Any) -> None:  # noqa: ANN401 - a multiprocessing Connection
     """Process body."""
-    logging.basicConfig(level=spec.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    log_format = os.environ.get(LOG_FORMAT_ENV, "text")  # the parent's --log-format (setup_logging set it)
+    setup_logging(logging.getLevelName(spec.log_level), log_format if log_format in LOG_FORMATS else "text")
     sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
     _Loop(spec, conn).run()
 

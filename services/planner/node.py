@@ -43,6 +43,7 @@ from robonav.services.common import (
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
 from robonav.services.limits import check_plan_request
+from robonav.services.planner.description import robot_description
 from robonav.services.planner.plan_worker import PlanWorker
 from robonav.services.planner.scene import PlanningScene
 from robonav.services.planner.scene_file import SceneFile
@@ -79,6 +80,9 @@ class PlannerNode(Node):
         keys = Keys(cfg.cell)
         # Latched: the executor checks every execute against this scene, also when it starts later.
         self._scene_pub = declare_latched_publisher(session, keys.scene_state)
+        # Discovery: the robot this planner plans for, latched, so a client needs no config file.
+        self._description_pub = declare_latched_publisher(session, keys.robot_description)
+        self._description_pub.put(robot_description(self.robot).to_wire())
         # The scene's world only keeps the objects (no plan runs in it, so no broad phase).
         scene_file = scene_file or cfg.planner.scene_file
         self.scene = PlanningScene(CollisionWorld(self.robot, padding_m=cfg.robot.padding_m, broad_phase=False),
@@ -240,6 +244,7 @@ class PlannerNode(Node):
         self._scene_queryable.undeclare()
         self._workers.close()
         self._scene_pub.undeclare()
+        self._description_pub.undeclare()
         for sub in self._subs:
             sub.undeclare()
 
@@ -248,4 +253,5 @@ def main(argv: list[str] | None = None) -> int:
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--scene-file", help="keep the planning scene in this file across restarts (planner.scene_file)")
     known, rest = pre.parse_known_args(argv)
-    return run_service("planner", rest, lambda cfg, session: PlannerNode(cfg, session, scene_file=known.scene_file))
+    return run_service("planner", rest, lambda cfg, session: PlannerNode(cfg, session, scene_file=known.scene_file),
+                       parents=(pre,))

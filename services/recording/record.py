@@ -36,7 +36,7 @@ import zenoh
 import zenoh.ext
 
 from robonav.pipeline.config import ConfigError
-from robonav.services.common import open_session, setup_logging, stop_on_signals
+from robonav.services.common import add_logging_arguments, open_session, setup_logging, stop_on_signals
 from robonav.services.config import load_config
 from robonav.services.keys import Keys
 from robonav.services.recording.writer import CHECKPOINT_S, CountersFile, frame_finish, frame_message
@@ -209,13 +209,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--max-buffer-mb", type=float, default=DEFAULT_MAX_BUFFER_MB,
                         help="memory for samples waiting to be written; beyond it samples are dropped and counted")
     parser.add_argument("--json", help="write the summary (counts per key) to this file")
-    parser.add_argument("--log-level", default="INFO")
+    add_logging_arguments(parser)
     return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    setup_logging(args.log_level)
+    setup_logging(args.log_level, args.log_format)
     try:
         cfg = load_config(args.config)
         if args.zenoh_config is not None:

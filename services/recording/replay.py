@@ -35,7 +35,7 @@ import numpy as np
 import zenoh
 
 from robonav.pipeline.config import ConfigError
-from robonav.services.common import open_session, setup_logging, stop_on_signals
+from robonav.services.common import add_logging_arguments, open_session, setup_logging, stop_on_signals
 from robonav.services.config import load_config
 from robonav.services.recording.files import Recording, RecordingError
 from robonav.services.recording.reader import ReadAhead
@@ -238,7 +238,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--zenoh-config", metavar="FILE",
                         help="Zenoh JSON5 config (TLS, login, e.g. client-viewer.json5); overrides zenoh.config_file")
     parser.add_argument("--json", help="write the summary (counts, timing error) to this file")
-    parser.add_argument("--log-level", default="INFO")
+    add_logging_arguments(parser)
     return parser.parse_args(argv)
 
 
@@ -266,7 +266,7 @@ def check(recording: Recording) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    setup_logging(args.log_level)
+    setup_logging(args.log_level, args.log_format)
     try:
         options = ReplayOptions(rate=None if args.rate == "max" else float(args.rate), loop=args.loop,
                                 keys=tuple(args.keys), start_s=args.start, end_s=args.end, robot_keys=args.robot_keys,

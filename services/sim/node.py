@@ -40,6 +40,7 @@ from robonav.pipeline.wire.messages import (
 from robonav.services.common import (
     Node,
     check_publication_size,
+    declare_latched_publisher,
     decode_request,
     guarded_queryable,
     guarded_subscriber,
@@ -49,6 +50,7 @@ from robonav.services.common import (
 from robonav.services.config import RobonavConfig
 from robonav.services.keys import Keys
 from robonav.services.limits import check_scene_request
+from robonav.services.sim.description import camera_descriptions
 from robonav.services.sim.objects import SimObjects
 from robonav.services.sim.render import LabelRegistry, RenderJob, RenderWorker, snapshot_scene
 from robonav.services.sim.stats import LoopStats
@@ -113,6 +115,9 @@ class SimNode(Node):
         keys = Keys(cfg.cell)
         self._joint_pub = session.declare_publisher(keys.joint_states)
         self._event_pub = session.declare_publisher(keys.contact_events)
+        # Discovery: the cell's cameras, latched, so a client needs no config file.
+        self._cameras_pub = declare_latched_publisher(session, keys.cameras)
+        self._cameras_pub.put(camera_descriptions(cfg).to_wire())
         # Setpoints arrive at 1 kHz and only the newest matters: a ring channel keeps it in Zenoh
         # (no Python callback per sample competing for the GIL); the physics loop decodes one per step.
         self._setpoint_sub = session.declare_subscriber(keys.setpoint, zenoh.handlers.RingChannel(1))
@@ -312,7 +317,8 @@ class SimNode(Node):
             worker.request_stop()
         for worker in self.workers:
             worker.close()
-        for entity in (*self._queryables, *self._subs, self._setpoint_sub, self._joint_pub, self._event_pub):
+        for entity in (*self._queryables, *self._subs, self._setpoint_sub, self._joint_pub, self._event_pub,
+                       self._cameras_pub):
             entity.undeclare()
         self.world.close()
 

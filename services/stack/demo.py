@@ -25,7 +25,7 @@ from robonav.pipeline.perception.map_readiness import map_complete
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, PlanResponse
 from robonav.services.client import QueryFailed, RobonavClient
-from robonav.services.common import open_session, setup_logging, stop_on_signals
+from robonav.services.common import add_logging_arguments, open_session, setup_logging, stop_on_signals
 from robonav.services.config import RobonavConfig, default_config_path, load_config
 from robonav.services.keys import SERVICES
 from robonav.services.stack.up import Stack
@@ -205,9 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--view", action="store_true", help="also serve the live 3D view; stay up until Ctrl-C")
     parser.add_argument("--view-port", type=int, default=8080, help="port of the view (default %(default)s)")
     parser.add_argument("--snapshot", metavar="OUT.png", help="write a picture of the final scene (needs chromium)")
-    parser.add_argument("--log-level", default="WARNING")
+    add_logging_arguments(parser, "WARNING")
     args = parser.parse_args(argv)
-    setup_logging(args.log_level)
+    setup_logging(args.log_level, args.log_format)
     source = Path(args.config) if args.config else default_config_path()
     with tempfile.TemporaryDirectory(prefix="robonav-demo-") as tmp:
         try:

@@ -28,9 +28,9 @@ from robonav.services.config import ZenohConfig
 ROLES: tuple[str, ...] = ("sim", "perception", "planner", "executor", "operator", "viewer")
 
 PUBLISHES: dict[str, tuple[str, ...]] = {
-    "sim": ("robot/joint_states", "camera/cam0/cloud", "camera/cam0/depth", "sim/contacts/events"),
+    "sim": ("robot/joint_states", "camera/cam0/cloud", "camera/cam0/depth", "sim/contacts/events", "cameras"),
     "perception": ("perception/occupancy", "perception/clusters"),
-    "planner": ("planner/scene_state",),
+    "planner": ("planner/scene_state", "robot/description"),
     "executor": ("executor/setpoint", "executor/status", "executor/path"),
 }
 """Keys (under `robonav/<cell>/`) each role may publish; nobody else may."""

@@ -36,8 +36,8 @@ def main(argv: list[str] | None = None) -> int:
                      help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 or tls/0.0.0.0:7447 (repeatable)")
     pre.add_argument("--id", metavar="HEX", help="the router's Zenoh id (as zenohd --id); default: random")
     known, rest = pre.parse_known_args(argv)
-    loaded = parse_args_and_config("robonav router", "Run a Zenoh router for the robonav services until Ctrl-C. "
-                                   "Also: --listen ENDPOINT (repeatable), --id HEX.", rest)
+    loaded = parse_args_and_config("robonav router", "Run a Zenoh router for the robonav services until Ctrl-C.", rest,
+                                   parents=(pre,))
     if loaded is None:
         return 2
     _, cfg = loaded

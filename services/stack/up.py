@@ -171,11 +171,11 @@ class Stack:
 
 def main(argv: list[str] | None = None) -> int:
     view_parser = argparse.ArgumentParser(add_help=False)
-    view_parser.add_argument("--view", action="store_true")
-    view_parser.add_argument("--view-port", type=int, default=8080)
+    view_parser.add_argument("--view", action="store_true", help="also run `robonav view` (the live 3D view in the browser)")
+    view_parser.add_argument("--view-port", type=int, default=8080, help="port of --view (default %(default)s)")
     view_args, argv = view_parser.parse_known_args(argv)
     loaded = parse_args_and_config("robonav up", "Run a Zenoh router and every service until Ctrl-C, restarting "
-                                   "any that exits (--view: also `robonav view` on --view-port, default 8080).", argv)
+                                   "any that exits.", argv, parents=(view_parser,))
     if loaded is None:
         return 2
     args, cfg = loaded

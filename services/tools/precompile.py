@@ -25,7 +25,7 @@ from typing import Any
 
 from robonav.pipeline.config import ConfigError
 from robonav.services.cli import use_numba_cache_dir
-from robonav.services.common import setup_logging
+from robonav.services.common import add_logging_arguments, setup_logging
 from robonav.services.config import load_config
 
 log = logging.getLogger("robonav.precompile")
@@ -82,9 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="robonav precompile", description=__doc__.splitlines()[0])
     parser.add_argument("--config", help="YAML config (default: the packaged default): its robot, cameras and maps")
     parser.add_argument("--json", help="also write the summary to this file")
-    parser.add_argument("--log-level", default="WARNING")
+    add_logging_arguments(parser, "WARNING")
     args = parser.parse_args(argv)
-    setup_logging(args.log_level)
+    setup_logging(args.log_level, args.log_format)
     try:
         summary = precompile(args.config)
     except ConfigError as exc:

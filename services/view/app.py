@@ -30,7 +30,13 @@ from robonav.pipeline.transforms import transform_points
 from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire.messages import ExecutorPath, PointCloud
 from robonav.services.client import RobonavClient
-from robonav.services.common import declare_latched_subscriber, open_session, setup_logging, stop_on_signals
+from robonav.services.common import (
+    add_logging_arguments,
+    declare_latched_subscriber,
+    open_session,
+    setup_logging,
+    stop_on_signals,
+)
 from robonav.services.config import RobonavConfig, load_config, perceived_world_from_camera
 from robonav.services.keys import Keys
 from robonav.services.view.gate import TOKEN_ENV, TokenGate, is_loopback, new_token
@@ -339,7 +345,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--snapshot", metavar="OUT.png", help="render the scene once in headless Chromium, write a PNG, exit")
     parser.add_argument("--wait-s", type=float, default=20.0, help="--snapshot: longest wait for data (default %(default)s)")
     parser.add_argument("--size", default="1280x800", help="--snapshot: picture size in pixels, WIDTHxHEIGHT (default %(default)s)")
-    parser.add_argument("--log-level", default="INFO")
+    add_logging_arguments(parser)
     return parser.parse_args(argv)
 
 
@@ -364,7 +370,7 @@ def main(argv: list[str] | None = None) -> int:
 
         return bench_main(argv[1:])
     args = parse_args(argv)
-    setup_logging(args.log_level)
+    setup_logging(args.log_level, args.log_format)
     try:
         cfg = load_config(args.config)
         if args.zenoh_config is not None:

@@ -14,6 +14,8 @@ from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.messages import (
     ALL_MESSAGES,
     AttachedObjectSpec,
+    CameraDescription,
+    Cameras,
     CameraStats,
     ContactEvent,
     ContactsRequest,
@@ -30,6 +32,7 @@ from robonav.pipeline.wire.messages import (
     PlanRequest,
     PlanResponse,
     PointCloud,
+    RobotDescription,
     SceneObjectSpec,
     SceneObjectState,
     SceneRequest,
@@ -123,6 +126,14 @@ EXAMPLES: list[Message] = [
                              last_exit_code=-9, last_exit_stamp=4.0, last_back_s=2.5),
         ServiceProcessStatus("sim", "restarting", False, restarts=2, last_exit_code=1, restart_in_s=1.0),
     )),
+    RobotDescription(stamp=9.0, name="panda", urdf="<robot name='panda'/>", base_frame="panda_link0",
+                     end_effector_link="panda_hand", joint_names=NAMES, lower_limits=-np.ones(7), upper_limits=np.ones(7),
+                     max_velocity=np.full(7, 2.0), max_acceleration=np.full(7, 10.0), max_jerk=np.full(7, 5000.0),
+                     home_position=np.zeros(7), fixed_joint_positions={"panda_finger_joint1": 0.04},
+                     allowed_collision_pairs=("panda_hand|panda_leftfinger",), padding_m=0.01),
+    Cameras(stamp=10.0, cameras=(CameraDescription("cam0", CameraIntrinsics(640, 480, 430.0, 430.0, 319.5, 239.5),
+                                                   world_from_camera=np.eye(4), output="both", near_m=0.1, far_m=3.0,
+                                                   rate_hz=5.0),)),
 ]
 
 

@@ -27,6 +27,7 @@ from robonav.pipeline.wire.messages import (
     PlanningSceneState,
     PlanRequest,
     PlanResponse,
+    RobotDescription,
     SceneObjectSpec,
     SceneRequest,
     SceneResponse,
@@ -354,3 +355,25 @@ def test_odd_joint_states_never_hold_back_the_default_start(planner: tuple[Plann
     session.put(keys.joint_states, state(1.0, moved))  # stamped in 1970
     time.sleep(0.2)
     np.testing.assert_allclose(start_of_plan(), moved)
+
+
+def test_the_robot_description_is_published_latched_for_discovery(
+        planner: tuple[PlannerNode, zenoh.Session, RobonavClient]) -> None:
+    node, session, _ = planner
+    received: list[RobotDescription] = []
+    sub = declare_latched_subscriber(session, Keys(CONFIG.cell).robot_description,
+                                     lambda s: received.append(RobotDescription.from_wire(s.payload.to_bytes())))
+    try:
+        deadline = time.monotonic() + 10.0
+        while not received and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        sub.undeclare()
+    assert received, "no robot/description publication"
+    description = received[0]
+    assert description.joint_names == CONFIG.robot.joint_names and description.base_frame == CONFIG.robot.base_link
+    assert description.end_effector_link == CONFIG.robot.end_effector_link and "<robot" in description.urdf
+    np.testing.assert_array_equal(description.lower_limits, node.robot.lower_limits_rad)
+    np.testing.assert_array_equal(description.upper_limits, node.robot.upper_limits_rad)
+    np.testing.assert_array_equal(description.max_velocity, CONFIG.robot.max_velocity_rad_s)
+    assert len(description.allowed_collision_pairs) == len(CONFIG.robot.allowed_collision_pairs)

@@ -18,6 +18,7 @@ from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.transforms import look_at_quat_xyzw, transform_points
 from robonav.pipeline.wire.messages import (
+    Cameras,
     ContactEvent,
     DepthImage,
     ErrorReply,
@@ -33,7 +34,7 @@ from robonav.pipeline.wire.messages import (
     SimStatsResponse,
 )
 from robonav.services.client import RobonavClient
-from robonav.services.common import open_session
+from robonav.services.common import declare_latched_subscriber, open_session
 from robonav.services.config import RobonavConfig, ZenohConfig, load_config
 from robonav.services.stack.up import Stack
 
@@ -309,3 +310,24 @@ def test_stats_report_physics_timing_and_frames(sim: tuple[RobonavClient, Record
     assert all(c.frames > 0 and c.render_ms_p50 > 0 for c in stats.cameras)
     fresh = client.query(client.keys.root + "/sim/stats", SimStatsRequest(), SimStatsResponse, 10.0)
     assert isinstance(fresh, SimStatsResponse) and fresh.steps < stats.steps  # a new window
+
+
+def test_the_cameras_are_published_latched_for_discovery(sim: tuple[RobonavClient, Recorder, RobonavConfig]) -> None:
+    client, _, cfg = sim
+    received: list[Cameras] = []
+    # Subscribed long after the sim started: the latched cache answers.
+    sub = declare_latched_subscriber(client.session, f"robonav/{cfg.cell}/cameras",
+                                     lambda s: received.append(Cameras.from_wire(s.payload.to_bytes())))
+    try:
+        deadline = time.monotonic() + 10.0
+        while not received and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        sub.undeclare()
+    assert received, "no cameras publication"
+    cameras = {c.camera_id: c for c in received[0].cameras}
+    assert set(cameras) == {"clean", "noisy"}
+    for camera in cfg.cameras:
+        described = cameras[camera.camera_id]
+        assert described.intrinsics == camera.intrinsics and described.output == camera.output
+        np.testing.assert_allclose(described.world_from_camera, camera.world_from_camera, atol=1e-12)

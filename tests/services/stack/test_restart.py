@@ -123,9 +123,17 @@ def test_status_lists_every_process_alive_from_another_process(running: Running)
     assert report["ok"] and report["supervisor"]["restart"] is True
     assert [s["name"] for s in report["services"]] == ["router", *SERVICES]
     assert all(s["alive"] and s["state"] == "running" and s["pid"] for s in report["services"]), report
+    assert report["map"] is not None and report["map"]["complete"], report["map"]
+    assert report["map"]["camera_frames"] and report["map"]["age_s"] < 60.0, report["map"]
+    assert report["executor"] is not None and report["executor"]["state"] == "idle", report["executor"]
+    assert report["executor"]["error_code"] == "", report["executor"]
+    started = time.monotonic()
+    collect_status(running.client.session, "arm0", timeout_s=2.0)
+    print(f"status report in {time.monotonic() - started:.2f} s (budget 2 s)")
     table = subprocess.run([sys.executable, "-m", "robonav.services.cli", "status", "--config", str(running.config)],
                            capture_output=True, text=True, timeout=60)
     assert table.returncode == 0 and "supervised by robonav up" in table.stdout, table.stdout + table.stderr
+    assert "map: seq" in table.stdout and "executor: idle" in table.stdout, table.stdout
 
 
 def test_a_killed_planner_comes_back_with_its_planning_scene(running: Running) -> None:
