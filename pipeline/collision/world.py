@@ -24,7 +24,14 @@ import numpy.typing as npt
 from robonav.pipeline.collision.attached import AttachedObject, Attachments
 from robonav.pipeline.collision.clearance import ClearanceQueries
 from robonav.pipeline.collision.edges import bisection_order, step_count
-from robonav.pipeline.collision.fcl_shapes import convex_shape, object_geometry, occupied_leaf_centers, octree_object, world_aabb
+from robonav.pipeline.collision.fcl_shapes import (
+    ExactLinkShapes,
+    convex_shape,
+    object_geometry,
+    occupied_leaf_centers,
+    octree_object,
+    world_aabb,
+)
 from robonav.pipeline.collision.sphere_first import SphereFirstChecks
 from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
 from robonav.pipeline.robot.link_geometry import grow_hull
@@ -89,6 +96,7 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
             dtype=np.int64,
         ).reshape(-1, 2)
         self._request = fcl.CollisionRequest()
+        self._exact = ExactLinkShapes([s for link in robot.collision_link_names for s in robot.link_collision_shapes[link]])
         self._distance_request = fcl.DistanceRequest()
         self._octree: fcl.CollisionObject | None = None
         self._seen_voxels_m: FloatArray | None = None
@@ -455,7 +463,8 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
             pair = (links[a], links[b])
             if pair in hits:
                 continue
-            if self._collide(self._posed_obj(int(a), padded=False), self._posed_obj(int(b), padded=False)):
+            if self._collide(self._posed_obj(int(a), padded=False), self._posed_obj(int(b), padded=False)) \
+                    and self._exact.collide(int(a), int(b), *self._world_from_shape_link[[a, b]]):
                 hits.append(pair)
                 if first_only:
                     return hits
