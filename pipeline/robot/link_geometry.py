@@ -284,6 +284,24 @@ def resolve_mesh_path(filename: str, urdf_path: Path, package_paths: Sequence[st
     raise ValueError(f"{urdf_path.name}: mesh '{filename}' not found (looked for {tried[0]})")
 
 
+def urdf_with_resolved_meshes(urdf_path: Path, package_paths: Sequence[str | Path] = ()) -> str:
+    """The URDF's text with every `<mesh filename>` replaced by its absolute path, resolved as
+    `resolve_mesh_path` does, for loaders that know no ROS packages (pybullet, which only strips
+    `package://` and looks beside the URDF).
+
+    Raises:
+        ValueError: unreadable XML, or a mesh that cannot be found.
+    """
+    try:
+        tree = ET.parse(urdf_path)
+    except (ET.ParseError, OSError) as exc:
+        raise ValueError(f"{urdf_path}: cannot read the URDF: {exc}") from exc
+    for mesh in tree.getroot().iter("mesh"):
+        if "filename" in mesh.attrib:
+            mesh.set("filename", str(resolve_mesh_path(mesh.attrib["filename"], urdf_path, package_paths).absolute()))
+    return ET.tostring(tree.getroot(), encoding="unicode")
+
+
 def load_mesh(path: Path) -> tuple[FloatArray, IntArray]:
     """Vertices (V, 3) and triangles (T, 3) of an OBJ, STL or COLLADA (.dae) mesh file, in metres.
 

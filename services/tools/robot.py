@@ -76,11 +76,13 @@ def init_robot_file(urdf: Path, out: Path, *, srdf: Path | None = None, group: s
     """
     if acm_samples < 1:
         raise ValueError(f"--acm-samples must be >= 1, got {acm_samples}")
-    urdf_abs = urdf.resolve()
+    # Absolute but with symlinks kept: a description reached through a link (a shared folder
+    # beside the repository) stays referenced through it.
+    urdf_abs = Path(os.path.abspath(urdf))
     if not urdf_abs.is_file():
         raise ValueError(f"--urdf {urdf} is not a file")
-    out_dir = out.resolve().parent
-    packages_abs = [p.resolve() for p in (package_paths or [])]
+    out_dir = Path(os.path.abspath(out)).parent
+    packages_abs = [Path(os.path.abspath(p)) for p in (package_paths or [])]
     urdf_ref = _relative(urdf_abs, out_dir)
     package_refs = tuple(_relative(p, out_dir) for p in packages_abs)
     parsed_srdf = parse_srdf(srdf) if srdf is not None else None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -89,3 +90,10 @@ def test_bad_input_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixtur
                  "--group", "arm", "--out", str(tmp_path / "x.yaml")])
     assert code == 2
     assert "SRDF has no group 'arm'" in capsys.readouterr().err
+
+
+def test_the_shipped_ur5_file_is_what_init_writes(ur5_file: Path) -> None:
+    """configs/ur5.yaml is `robonav robot init` output for ../shared/robots/ur5 (regenerate it if this fails)."""
+    shipped, fresh = load_robot_file(REPO_ROOT / "configs" / "ur5.yaml"), load_robot_file(ur5_file)
+    assert Path(shipped.urdf).resolve() == Path(fresh.urdf).resolve()
+    assert dataclasses.replace(shipped, urdf=fresh.urdf) == fresh
