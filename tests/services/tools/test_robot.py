@@ -13,6 +13,7 @@ import yaml
 from robonav.pipeline.evaluation.mbm import parse_mbm
 from robonav.pipeline.planning.ompl_planners import seed_ompl_once
 from robonav.pipeline.robot.model import RobotModel
+from robonav.services.bench.cli import main as bench_main
 from robonav.services.bench.plan import run_plan_benchmark
 from robonav.services.config import ConfigError, load_robot_file
 from robonav.services.tools.robot import main
@@ -97,3 +98,18 @@ def test_the_shipped_ur5_file_is_what_init_writes(ur5_file: Path) -> None:
     shipped, fresh = load_robot_file(REPO_ROOT / "configs" / "ur5.yaml"), load_robot_file(ur5_file)
     assert Path(shipped.urdf).resolve() == Path(fresh.urdf).resolve()
     assert dataclasses.replace(shipped, urdf=fresh.urdf) == fresh
+
+
+def test_bench_plan_takes_the_robot_file(ur5_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "bench.json"
+    args = ["plan", "--problems", str(MBM_UR5_DIR), "--families", "box", "--limit", "1", "--time-limit", "1",
+            "--robot", str(ur5_file), "--no-progress", "--json", str(out)]
+    assert bench_main(args) == 0
+    report = json.loads(out.read_text())
+    assert report["config"]["robot"] == "ur5_robotiq85" and report["overall"]["problems"] == 1
+    assert report["overall"]["invalid_paths"] == 0
+    # Problems of another robot are refused by name, before any planning.
+    panda_problems = REPO_ROOT.parent / "shared" / "benchmarks" / "mbm"
+    assert bench_main(["plan", "--problems", str(panda_problems), "--families", "box", "--limit", "1",
+                       "--robot", str(ur5_file), "--no-progress"]) == 2
+    assert "differ from robot 'ur5_robotiq85' config's" in capsys.readouterr().err
