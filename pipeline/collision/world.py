@@ -2,7 +2,8 @@
 
 Every robot shape is an `fcl.Convex` of its convex hull (GJK on a hull is much faster than on
 the triangle mesh). A hull contains its mesh, so this is conservative: it can report contact in
-a concave pocket of a link where the mesh itself is free. Robot-vs-world checks use hulls grown
+a concave pocket of a link where the mesh itself is free; a self pair whose hulls touch is therefore
+confirmed on the exact shapes (`fcl_shapes.ExactLinkShapes`). Robot-vs-world checks use hulls grown
 by `padding_m` (see `link_geometry.grow_hull`); self-collision and clearance use the ungrown hulls.
 
 Each check first rejects pairs whose bounding spheres cannot touch (numpy), then runs FCL per
