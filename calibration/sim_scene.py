@@ -69,7 +69,7 @@ class CalibrationScene:
     def __init__(self, robot: RobotConfig, board: BoardSpec) -> None:
         self._client = p.connect(p.DIRECT)
         try:
-            self._robot = p.loadURDF(str(resolve_urdf_path(robot.urdf)), useFixedBase=True,
+            self._robot = p.loadURDF(str(resolve_urdf_path(robot.urdf, robot.package_paths)), useFixedBase=True,
                                      flags=p.URDF_USE_MATERIAL_COLORS_FROM_MTL, physicsClientId=self._client)
             names = {p.getJointInfo(self._robot, j, physicsClientId=self._client)[1].decode(): j
                      for j in range(p.getNumJoints(self._robot, physicsClientId=self._client))}

@@ -24,6 +24,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("robonav.services.stack.demo", "start everything, plan and execute the demo goals, print a JSON summary"),
     "bench": ("robonav.services.bench.cli", "benchmarks: `robonav bench plan --problems DIR` (MotionBenchMaker), "
                                         "`robonav bench executor`"),
+    "robot": ("robonav.services.tools.robot", "robot files: `robonav robot init --urdf U [--srdf S] [--group G] "
+                                             "[--tip LINK] [--package-path DIR] --out FILE`"),
     "plot": ("robonav.services.tools.plot", "plots: `robonav plot trajectory --json PATH_FILE -o out.png`"),
     "router": ("robonav.services.stack.router", "a Zenoh router for the services (TLS, authentication, access control "
                                           "from a Zenoh config): `robonav router [--listen tcp/0.0.0.0:7447]`"),

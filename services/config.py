@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -15,7 +16,7 @@ from robonav.pipeline.camera import CameraConfig, CameraExtrinsics
 from robonav.pipeline.config import ConfigError, collect_errors, from_mapping, require
 from robonav.pipeline.perception.config import PerceptionConfig
 from robonav.pipeline.planning.config import PlannerConfig
-from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.config import RobotConfig, missing_described_fields
 from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.trajectory.config import ExecutorConfig
 from robonav.pipeline.types import FloatArray
@@ -165,6 +166,8 @@ def load_config(path: str | Path | None = None) -> RobonavConfig:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(str(file), "<file>", f"invalid YAML: {exc}") from exc
+    if isinstance(data, dict) and isinstance(data.get("robot"), dict):
+        data = {**data, "robot": _robot_paths_resolved(data["robot"], file, "robot")}
     return _with_extrinsics(from_mapping(RobonavConfig, data, source=str(file)), file)
 
 
@@ -206,6 +209,11 @@ def check_config(path: str | Path) -> tuple[RobonavConfig | None, list[ConfigIss
     lines: dict[str, int] = {}
     issues = [ConfigIssue(str(file), line, key, "duplicate key (YAML would keep only the last)")
               for key, line in _key_lines(root, "", lines)]
+    if isinstance(data, dict) and isinstance(data.get("robot"), dict):
+        try:
+            data = {**data, "robot": _robot_paths_resolved(data["robot"], file, "robot")}
+        except ConfigError as exc:
+            issues.append(ConfigIssue(str(file), _line_of(exc.key, lines), exc.key, exc.detail))
     cfg, errors = collect_errors(RobonavConfig, data, source=str(file))
     issues += [ConfigIssue(str(file), _line_of(e.key, lines), e.key, e.detail) for e in errors]
     if cfg is not None and not issues:
@@ -259,6 +267,48 @@ def config_to_mapping(cfg: Any) -> Any:
     if isinstance(cfg, np.generic):
         return cfg.item()
     return cfg
+def load_robot_file(path: str | Path) -> RobotConfig:
+    """Read a robot file (what `robonav robot init` writes): a YAML mapping of `RobotConfig` keys.
+
+    Relative `urdf` and `package_paths` entries resolve against the file's folder and `$VAR`s
+    expand, so a file can point at a description kept outside the repository.
+
+    Raises:
+        ConfigError: unreadable file, bad YAML, an unknown key or wrong type, or keys a non-Panda
+            URDF must state left out (all of those named at once).
+    """
+    file = Path(path)
+    try:
+        data = yaml.safe_load(file.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(str(file), "<file>", f"cannot read: {exc.strerror or exc}") from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(str(file), "<file>", f"invalid YAML: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(str(file), "<root>", f"expected a mapping of robot keys, got {type(data).__name__}")
+    return from_mapping(RobotConfig, _robot_paths_resolved(data, file, ""), source=str(file))
+
+
+def _robot_paths_resolved(data: dict[str, Any], file: Path, key: str) -> dict[str, Any]:
+    """`data` with its URDF-described keys checked and its file paths made absolute (relative to `file`)."""
+    missing = missing_described_fields(data)
+    if missing:
+        raise ConfigError(str(file), key or "<root>",
+                          f"the robot names its own URDF ({data.get('urdf')}), so these keys must be given too (the "
+                          f"defaults are the Panda's): {', '.join(missing)}; `robonav robot init` writes them all")
+    out = dict(data)
+
+    def resolved(value: Any) -> Any:
+        if not isinstance(value, str) or value.startswith(("pybullet_data:", "package://")):
+            return value
+        expanded = Path(os.path.expanduser(os.path.expandvars(value)))
+        return str(expanded if expanded.is_absolute() else (file.parent / expanded))
+
+    if "urdf" in out:
+        out["urdf"] = resolved(out["urdf"])
+    if isinstance(out.get("package_paths"), list):
+        out["package_paths"] = [resolved(v) for v in out["package_paths"]]
+    return out
 
 
 def _with_extrinsics(cfg: RobonavConfig, file: Path) -> RobonavConfig:

@@ -12,6 +12,7 @@ import math
 import fcl
 import numpy as np
 
+from robonav.pipeline.robot.link_geometry import LinkShape
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray, IntArray
 
@@ -98,3 +99,55 @@ def sphere_box_distance(
     """(S, K) lower bound on the distance between spheres (S,) and axis-aligned boxes (K,) [m]."""
     gap = np.maximum(np.abs(centers[:, None, :] - box_center[None, :, :]) - box_half[None, :, :], 0.0)
     return np.sqrt(np.einsum("skj,skj->sk", gap, gap)) - radii[:, None]
+
+
+class ExactLinkShapes:
+    """Link shapes as their exact FCL geometry (triangle-mesh BVHs, primitives), built on first use.
+
+    Self-collision confirms a contact of two link HULLS on these: a hull fills a link's concave
+    pockets, and two such links sitting close (the UR5's forearm and wrist, its base and upper arm)
+    touched as hulls in a quarter of random states where their meshes stay apart, which made
+    valid starts and goals invalid. Only pairs whose hulls touch reach here, so the mesh test
+    runs on few states (spheres and hulls clear the rest).
+    """
+
+    def __init__(self, shapes: list[LinkShape]) -> None:
+        self._shapes = shapes
+        self._objs: dict[int, fcl.CollisionObject] = {}
+        self._request = fcl.CollisionRequest()
+
+    def collide(self, a: int, b: int, world_from_link_a: FloatArray, world_from_link_b: FloatArray) -> bool:
+        """Do shapes `a` and `b` (flat shape indices) touch with their links at these (4, 4) poses?"""
+        obj_a, obj_b = self._posed(a, world_from_link_a), self._posed(b, world_from_link_b)
+        return fcl.collide(obj_a, obj_b, self._request, fcl.CollisionResult()) > 0
+
+    def _posed(self, s: int, world_from_link: FloatArray) -> fcl.CollisionObject:
+        obj = self._objs.get(s)
+        if obj is None:
+            obj = self._objs[s] = fcl.CollisionObject(link_shape_geometry(self._shapes[s])[0], fcl.Transform())
+        pose = world_from_link @ self._shapes[s].link_from_shape
+        obj.setRotation(pose[:3, :3])
+        obj.setTranslation(pose[:3, 3])
+        return obj
+
+
+def link_shape_geometry(shape: LinkShape) -> tuple[fcl.CollisionGeometry, FloatArray, float]:
+    """FCL geometry of a link shape in its SHAPE frame, with a bounding sphere (center (3,), radius) there [m]."""
+    if shape.kind == "mesh":
+        if shape.vertices is None or shape.triangles is None:
+            raise ValueError(f"link '{shape.link}': mesh shape carries no triangles")
+        vertices = np.ascontiguousarray(shape.vertices, dtype=np.float64)
+        model = fcl.BVHModel()
+        model.beginModel(len(vertices), len(shape.triangles))
+        model.addSubModel(vertices, np.ascontiguousarray(shape.triangles, dtype=np.int64))
+        model.endModel()
+        center = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+        return model, center, float(np.max(np.linalg.norm(vertices - center, axis=1)))
+    if shape.kind == "box":
+        size = np.asarray(shape.size_m, dtype=np.float64)
+        return fcl.Box(*size), np.zeros(3), float(0.5 * np.linalg.norm(size))
+    if shape.kind == "cylinder":
+        radius, length = float(shape.radius_m), float(shape.length_m)  # type: ignore[arg-type]
+        return fcl.Cylinder(radius, length), np.zeros(3), math.hypot(radius, 0.5 * length)
+    radius = float(shape.radius_m)  # type: ignore[arg-type]
+    return fcl.Sphere(radius), np.zeros(3), radius

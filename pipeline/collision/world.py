@@ -2,7 +2,8 @@
 
 Every robot shape is an `fcl.Convex` of its convex hull (GJK on a hull is much faster than on
 the triangle mesh). A hull contains its mesh, so this is conservative: it can report contact in
-a concave pocket of a link where the mesh itself is free. Robot-vs-world checks use hulls grown
+a concave pocket of a link where the mesh itself is free; a self pair whose hulls touch is therefore
+confirmed on the exact shapes (`fcl_shapes.ExactLinkShapes`). Robot-vs-world checks use hulls grown
 by `padding_m` (see `link_geometry.grow_hull`); self-collision and clearance use the ungrown hulls.
 
 Each check first rejects pairs whose bounding spheres cannot touch (numpy), then runs FCL per
@@ -24,7 +25,14 @@ import numpy.typing as npt
 from robonav.pipeline.collision.attached import AttachedObject, Attachments
 from robonav.pipeline.collision.clearance import ClearanceQueries
 from robonav.pipeline.collision.edges import bisection_order, step_count
-from robonav.pipeline.collision.fcl_shapes import convex_shape, object_geometry, occupied_leaf_centers, octree_object, world_aabb
+from robonav.pipeline.collision.fcl_shapes import (
+    ExactLinkShapes,
+    convex_shape,
+    object_geometry,
+    occupied_leaf_centers,
+    octree_object,
+    world_aabb,
+)
 from robonav.pipeline.collision.sphere_first import SphereFirstChecks
 from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
 from robonav.pipeline.robot.link_geometry import grow_hull
@@ -89,6 +97,7 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
             dtype=np.int64,
         ).reshape(-1, 2)
         self._request = fcl.CollisionRequest()
+        self._exact = ExactLinkShapes([s for link in robot.collision_link_names for s in robot.link_collision_shapes[link]])
         self._distance_request = fcl.DistanceRequest()
         self._octree: fcl.CollisionObject | None = None
         self._seen_voxels_m: FloatArray | None = None
@@ -455,7 +464,8 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
             pair = (links[a], links[b])
             if pair in hits:
                 continue
-            if self._collide(self._posed_obj(int(a), padded=False), self._posed_obj(int(b), padded=False)):
+            if self._collide(self._posed_obj(int(a), padded=False), self._posed_obj(int(b), padded=False)) \
+                    and self._exact.collide(int(a), int(b), *self._world_from_shape_link[[a, b]]):
                 hits.append(pair)
                 if first_only:
                     return hits

@@ -1,9 +1,10 @@
-"""MotionBenchMaker problems in the `mbm-primitives/1` JSON format, and the Panda model they need.
+"""MotionBenchMaker problems in the `mbm-primitives/1` JSON format, and the robot model they need.
 
 The format (one document per problem family) is described in the shared benchmarks'
 `mbm/FORMAT.md`. This module turns an already-parsed document (a mapping, as `json.load`
 returns it) into frozen dataclasses; reading the file is the caller's job. Obstacles become
-`SceneObject`s in the world frame, which for these files is the robot base frame.
+`SceneObject`s in the world frame, which for these files is the robot's base frame (the URDF's
+root link for the UR5 set).
 
 Parsing is strict: a wrong format string, a missing key or a value of the wrong shape raises
 `ValueError` naming the problem (position in the list and its `index`) and the key.
@@ -146,33 +147,40 @@ def parse_mbm(document: Mapping[str, Any]) -> MbmProblemSet:
 
 
 def mbm_robot_config(problems: MbmProblemSet, *, padding_m: float = 0.0,
-                     base: RobotConfig | None = None) -> RobotConfig:
+                     base: RobotConfig | None = None, known_links: frozenset[str] | None = None) -> RobotConfig:
     """The robot config that reproduces MBM's collision model for a problem set.
 
-    Takes the joint names, the fixed (finger) positions and the allowed-collision pairs from
-    the document and the MBM joint limits from `MBM_PANDA_POSITION_LIMITS_RAD`; everything
-    else (URDF, velocity limits, ...) from `base`, the default Panda config when None.
+    Takes the fixed (finger) positions and the allowed-collision pairs from the document,
+    everything else (URDF, limits, ...) from `base`, the default Panda config when None. For
+    the Panda the MBM joint limits (`MBM_PANDA_POSITION_LIMITS_RAD`) replace the URDF's.
 
     Args:
-        problems: A parsed document whose `robot` is 'panda'.
+        problems: A parsed document whose joints are the base config's planning joints.
         padding_m: Robot-vs-world padding when planning [m]; MBM's own checks use none.
-        base: Config to start from.
+        base: Config to start from (the robot file the user gave).
+        known_links: Links of the base robot's URDF; allowed pairs naming any other link (the
+            UR5 set's MoveIt matrix names `box_link`, an object of the original scene) are
+            dropped. None keeps every pair.
 
     Raises:
-        ValueError: the document is for another robot, or its joints differ from the base
-            config's.
+        ValueError: the document's joints differ from the base config's.
     """
     cfg = base if base is not None else RobotConfig()
-    if problems.robot != "panda":
-        raise ValueError(f"mbm '{problems.family}': robot '{problems.robot}' has no known model (only 'panda')")
     if problems.joint_names != cfg.joint_names:
-        raise ValueError(f"mbm '{problems.family}': joint_names {list(problems.joint_names)} differ from the "
-                         f"robot config's {list(cfg.joint_names)}")
+        hint = "" if base is not None else " (pass the robot's file: --robot FILE)"
+        raise ValueError(f"mbm '{problems.family}': robot '{problems.robot}' joint_names {list(problems.joint_names)} "
+                         f"differ from robot '{cfg.name}' config's {list(cfg.joint_names)}{hint}")
+    pairs = problems.allowed_collision_pairs
+    if known_links is not None:
+        pairs = tuple(p for p in pairs if p[0] in known_links and p[1] in known_links)
+    limits = dict(cfg.position_limits_rad)
+    if problems.robot == "panda" and set(MBM_PANDA_POSITION_LIMITS_RAD) == set(cfg.joint_names):
+        limits = dict(MBM_PANDA_POSITION_LIMITS_RAD)
     return dataclasses.replace(
         cfg,
-        fixed_joint_positions=dict(problems.fixed_joint_positions),
-        position_limits_rad=dict(MBM_PANDA_POSITION_LIMITS_RAD),
-        allowed_collision_pairs=problems.allowed_collision_pairs,
+        fixed_joint_positions={**cfg.fixed_joint_positions, **problems.fixed_joint_positions},
+        position_limits_rad=limits,
+        allowed_collision_pairs=pairs,
         padding_m=padding_m,
     )
 

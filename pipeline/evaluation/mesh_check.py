@@ -12,15 +12,14 @@ than `CollisionWorld`; it is meant for re-checking returned paths, not for plann
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import fcl
 import numpy as np
 
+from robonav.pipeline.collision.fcl_shapes import link_shape_geometry
 from robonav.pipeline.planning.metrics import as_path, interpolate_path
-from robonav.pipeline.robot.link_geometry import LinkShape
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
@@ -73,7 +72,7 @@ class MeshCollisionChecker:
         centers, radii = [], []
         for link_index, (link, shapes) in enumerate(robot.link_collision_shapes.items()):
             for shape in shapes:
-                geometry, center_shape, radius = _link_shape_geometry(shape)
+                geometry, center_shape, radius = link_shape_geometry(shape)
                 self._shape_links.append(link)
                 self._shape_link_index.append(link_index)
                 self._link_from_shape.append(shape.link_from_shape)
@@ -219,28 +218,6 @@ class MeshCollisionChecker:
 
     def _collide(self, a: fcl.CollisionObject, b: fcl.CollisionObject) -> bool:
         return fcl.collide(a, b, self._request, fcl.CollisionResult()) > 0
-
-
-def _link_shape_geometry(shape: LinkShape) -> tuple[fcl.CollisionGeometry, FloatArray, float]:
-    """FCL geometry of a link shape in its SHAPE frame, with a bounding sphere (center (3,), radius) there [m]."""
-    if shape.kind == "mesh":
-        if shape.vertices is None or shape.triangles is None:
-            raise ValueError(f"link '{shape.link}': mesh shape carries no triangles")
-        vertices = np.ascontiguousarray(shape.vertices, dtype=np.float64)
-        model = fcl.BVHModel()
-        model.beginModel(len(vertices), len(shape.triangles))
-        model.addSubModel(vertices, np.ascontiguousarray(shape.triangles, dtype=np.int64))
-        model.endModel()
-        center = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
-        return model, center, float(np.max(np.linalg.norm(vertices - center, axis=1)))
-    if shape.kind == "box":
-        size = np.asarray(shape.size_m, dtype=np.float64)
-        return fcl.Box(*size), np.zeros(3), float(0.5 * np.linalg.norm(size))
-    if shape.kind == "cylinder":
-        radius, length = float(shape.radius_m), float(shape.length_m)  # type: ignore[arg-type]
-        return fcl.Cylinder(radius, length), np.zeros(3), math.hypot(radius, 0.5 * length)
-    radius = float(shape.radius_m)  # type: ignore[arg-type]
-    return fcl.Sphere(radius), np.zeros(3), radius
 
 
 def _object_geometry(obj: SceneObject) -> tuple[fcl.CollisionGeometry, FloatArray]:

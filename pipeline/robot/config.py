@@ -5,7 +5,18 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from robonav.pipeline.config import require
+PANDA_URDF = "pybullet_data:franka_panda/panda.urdf"
+
+DESCRIBED_FIELDS: tuple[str, ...] = (
+    "urdf", "base_link", "end_effector_link", "joint_names", "max_velocity_rad_s", "max_acceleration_rad_s2",
+    "max_jerk_rad_s3", "home_position_rad",
+)
+"""Fields a robot's URDF/SRDF decides. Their defaults are the Panda's (the default robot), so a
+config file describing any other URDF must state every one (`robonav robot init` writes them)."""
+
+CONTINUOUS_JOINT_RANGE_RAD = (-2.0 * math.pi, 2.0 * math.pi)
+"""Position range planned over for a `continuous` URDF joint unless `position_limits_rad` names
+it: two turns each way, so any goal angle is at most half a turn from an equivalent one inside."""
 
 
 @dataclass(frozen=True)
@@ -18,7 +29,7 @@ class RobotConfig:
     """
 
     name: str = "panda"
-    urdf: str = "pybullet_data:franka_panda/panda.urdf"
+    urdf: str = PANDA_URDF
     """URDF path; the prefix `pybullet_data:` resolves inside the pybullet_data package."""
     base_link: str = "panda_link0"
     """Link whose frame is the world frame (the robot base frame)."""
@@ -45,11 +56,22 @@ class RobotConfig:
     """Link pairs never checked for self-collision (MoveIt's allowed-collision matrix)."""
     padding_m: float = 0.01
     """Robot-vs-world padding added to link shapes when planning [m]; self-collision is unpadded."""
+    package_paths: tuple[str, ...] = ()
+    """Folders holding the ROS packages `package://NAME/...` mesh URIs name (each holds NAME/ or is
+    NAME/), searched before `ROS_PACKAGE_PATH` and the URDF's own folder."""
 
     def __post_init__(self) -> None:
+        # Every problem at once: a user fixing a new robot's file should not meet them one by one.
+        errors: list[str] = []
+
+        def require(condition: bool, message: str) -> None:
+            if not condition:
+                errors.append(message)
+
         n = len(self.joint_names)
         require(n > 0, "robot.joint_names must name at least one joint")
         require(len(set(self.joint_names)) == n, f"robot.joint_names has duplicates: {list(self.joint_names)}")
+        require(bool(self.urdf), "robot.urdf must name a URDF file")
         for label, values in (
             ("max_velocity_rad_s", self.max_velocity_rad_s),
             ("max_acceleration_rad_s2", self.max_acceleration_rad_s2),
@@ -63,14 +85,31 @@ class RobotConfig:
             ("max_jerk_rad_s3", self.max_jerk_rad_s3),
         ):
             for i, v in enumerate(values):
+                if i >= n:
+                    break
                 require(v > 0, f"robot.{label}[{i}] ({self.joint_names[i]}) must be > 0, got {v}")
         require(self.padding_m >= 0, f"robot.padding_m must be >= 0, got {self.padding_m}")
         for name, limits in self.position_limits_rad.items():
             require(name in self.joint_names,
                     f"robot.position_limits_rad names '{name}', which is not a planning joint "
                     f"(robot.joint_names: {list(self.joint_names)})")
-            require(len(limits) == 2, f"robot.position_limits_rad.{name} must be (lower, upper), got {limits}")
+            if len(limits) != 2:
+                require(False, f"robot.position_limits_rad.{name} must be (lower, upper), got {limits}")
+                continue
             lower, upper = limits
             require(math.isfinite(lower) and math.isfinite(upper),
                     f"robot.position_limits_rad.{name} must be finite, got ({lower}, {upper})")
             require(lower < upper, f"robot.position_limits_rad.{name}: lower {lower} must be < upper {upper}")
+        for i, pair in enumerate(self.allowed_collision_pairs):
+            require(len(pair) == 2, f"robot.allowed_collision_pairs[{i}] must be two link names, got {list(pair)}")
+        if errors:
+            raise ValueError("; ".join(errors) if len(errors) == 1 else
+                             f"{len(errors)} problems: " + "; ".join(errors))
+
+
+def missing_described_fields(data: object) -> list[str]:
+    """Fields of `DESCRIBED_FIELDS` a robot mapping (as read from YAML) leaves out although it names
+    a URDF other than the Panda's; empty for the Panda or a mapping that states them all."""
+    if not isinstance(data, dict) or data.get("urdf", PANDA_URDF) == PANDA_URDF:
+        return []
+    return [name for name in DESCRIBED_FIELDS if name not in data]

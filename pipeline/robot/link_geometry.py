@@ -8,8 +8,10 @@ circumscribed polytopes: they contain the true shape, never cut into it.
 from __future__ import annotations
 
 import math
+import os
 import re
 import xml.etree.ElementTree as ET
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -132,12 +134,12 @@ def rpy_transform(xyz: tuple[float, float, float], rpy: tuple[float, float, floa
     return out
 
 
-def parse_collision_shapes(urdf_path: Path) -> dict[str, list[LinkShape]]:
+def parse_collision_shapes(urdf_path: Path, package_paths: Sequence[str | Path] = ()) -> dict[str, list[LinkShape]]:
     """Collision shapes of every link of a URDF that has any, in document order.
 
     Args:
-        urdf_path: URDF file; mesh file names resolve relative to it (`package://` prefixes are
-            searched for in the URDF's directory and its ancestors).
+        urdf_path: URDF file; mesh file names resolve as `resolve_mesh_path` says.
+        package_paths: Folders holding ROS packages, searched for `package://NAME/...` first.
 
     Returns:
         Link name -> its shapes; links without `<collision>` are absent.
@@ -161,17 +163,18 @@ def parse_collision_shapes(urdf_path: Path) -> dict[str, list[LinkShape]]:
             if element is None:
                 raise ValueError(f"{where}: <geometry> is empty")
             try:
-                shape = _shape(name, element, link_from_shape, urdf_path, where)
+                shape = _shape(name, element, link_from_shape, urdf_path, where, package_paths)
             except KeyError as exc:
                 raise ValueError(f"{where}: <{element.tag}> lacks the attribute {exc}") from exc
             shapes.setdefault(name, []).append(shape)
     return shapes
 
 
-def _shape(link: str, element: ET.Element, link_from_shape: FloatArray, urdf_path: Path, where: str) -> LinkShape:
+def _shape(link: str, element: ET.Element, link_from_shape: FloatArray, urdf_path: Path, where: str,
+           package_paths: Sequence[str | Path]) -> LinkShape:
     tag = element.tag
     if tag == "mesh":
-        path = resolve_mesh_path(element.attrib["filename"], urdf_path)
+        path = resolve_mesh_path(element.attrib["filename"], urdf_path, package_paths)
         scale = np.array(_floats(element.attrib.get("scale", "1 1 1"), 3, where))
         vertices, triangles = load_mesh(path)
         vertices = vertices * scale
@@ -214,26 +217,99 @@ def circumscribed_sphere_points(radius_m: float) -> FloatArray:
     return vertices * (radius_m / inradius)
 
 
-def resolve_mesh_path(filename: str, urdf_path: Path) -> Path:
-    """File of a URDF mesh reference (`package://...`, `file://...` or a path relative to the URDF)."""
+ROS_PACKAGE_PATH_VARIABLE = "ROS_PACKAGE_PATH"
+
+
+def package_search_paths(package_paths: Sequence[str | Path] = (), urdf_path: Path | None = None,
+                         environ: Mapping[str, str] | None = None) -> list[Path]:
+    """Folders searched for ROS packages, in order: the configured ones, then `ROS_PACKAGE_PATH`
+    (os.pathsep-separated, as ROS reads it), then the URDF's own folder (a description shipped
+    as one folder, like MotionBenchMaker's, holds its `package://` roots beside the URDF)."""
+    env = os.environ if environ is None else environ
+    out = [Path(p) for p in package_paths]
+    out += [Path(p) for p in env.get(ROS_PACKAGE_PATH_VARIABLE, "").split(os.pathsep) if p]
+    if urdf_path is not None:
+        out.append(urdf_path.parent)
+    return out
+
+
+def find_package(name: str, search_paths: Sequence[Path]) -> Path | None:
+    """Folder of ROS package `name`: `DIR/NAME`, or DIR itself when named NAME, or a folder up to
+    two levels below DIR whose package.xml declares `<name>NAME</name>` (how catkin/colcon find
+    packages whose folder is named otherwise); None when no search path holds it."""
+    for base in search_paths:
+        if (base / name).is_dir():
+            return base / name
+        if base.name == name and base.is_dir():
+            return base
+    for base in search_paths:
+        for manifest in [*base.glob("*/package.xml"), *base.glob("*/*/package.xml")]:
+            try:
+                declared = ET.parse(manifest).getroot().findtext("name")
+            except (ET.ParseError, OSError):
+                continue
+            if declared is not None and declared.strip() == name:
+                return manifest.parent
+    return None
+
+
+def resolve_mesh_path(filename: str, urdf_path: Path, package_paths: Sequence[str | Path] = ()) -> Path:
+    """File of a URDF mesh reference, resolved as ROS does.
+
+    `package://NAME/rest` is `rest` inside package NAME, found through `package_search_paths`
+    (configured folders, `ROS_PACKAGE_PATH`, the URDF's folder); `file://` is an absolute path;
+    anything else is relative to the URDF's folder.
+
+    Raises:
+        ValueError: the file does not exist (the message lists where it was looked for).
+    """
     if filename.startswith("file://"):
-        candidates = [Path(filename[len("file://"):])]
+        candidate = Path(filename[len("file://"):])
+        tried = [str(candidate)]
     elif filename.startswith("package://"):
-        rest = Path(filename[len("package://"):])
-        # Without a ROS package index, try the URDF's folder and its ancestors, with and
-        # without the leading package name.
-        tails = [rest] + ([Path(*rest.parts[1:])] if len(rest.parts) > 1 else [])
-        candidates = [base / tail for base in [urdf_path.parent, *urdf_path.parent.parents] for tail in tails]
+        rest = filename[len("package://"):]
+        name, _, tail = rest.partition("/")
+        searched = package_search_paths(package_paths, urdf_path)
+        package = find_package(name, searched)
+        if package is None:
+            raise ValueError(f"{urdf_path.name}: mesh '{filename}': package '{name}' not found in the package paths "
+                             f"{[str(p) for p in searched]} (set robot.package_paths or {ROS_PACKAGE_PATH_VARIABLE})")
+        candidate = package / tail
+        tried = [str(candidate)]
     else:
-        candidates = [urdf_path.parent / filename]
-    for candidate in candidates:
-        if candidate.is_file():
-            return candidate
-    raise ValueError(f"{urdf_path.name}: mesh '{filename}' not found (tried {[str(c) for c in candidates[:4]]}...)")
+        candidate = urdf_path.parent / filename
+        tried = [str(candidate)]
+    if candidate.is_file():
+        return candidate
+    raise ValueError(f"{urdf_path.name}: mesh '{filename}' not found (looked for {tried[0]})")
+
+
+def urdf_with_resolved_meshes(urdf_path: Path, package_paths: Sequence[str | Path] = ()) -> str:
+    """The URDF's text with every `<mesh filename>` replaced by its absolute path, resolved as
+    `resolve_mesh_path` does, for loaders that know no ROS packages (pybullet, which only strips
+    `package://` and looks beside the URDF).
+
+    Raises:
+        ValueError: unreadable XML, or a mesh that cannot be found.
+    """
+    try:
+        tree = ET.parse(urdf_path)
+    except (ET.ParseError, OSError) as exc:
+        raise ValueError(f"{urdf_path}: cannot read the URDF: {exc}") from exc
+    for mesh in tree.getroot().iter("mesh"):
+        if "filename" in mesh.attrib:
+            mesh.set("filename", str(resolve_mesh_path(mesh.attrib["filename"], urdf_path, package_paths).absolute()))
+    return ET.tostring(tree.getroot(), encoding="unicode")
 
 
 def load_mesh(path: Path) -> tuple[FloatArray, IntArray]:
-    """Vertices (V, 3) and triangles (T, 3) of an OBJ or STL mesh file, in the file's units."""
+    """Vertices (V, 3) and triangles (T, 3) of an OBJ, STL or COLLADA (.dae) mesh file, in metres.
+
+    COLLADA goes through trimesh (with pycollada), which applies the file's `<unit>` and node
+    transforms; OBJ and STL through open3d, which the rest of the geometry code uses.
+    """
+    if path.suffix.lower() == ".dae":
+        return _load_collada(path)
     # open3d logs skipped records and missing .mtl textures at warning level; the pure core stays quiet.
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh = o3d.io.read_triangle_mesh(str(path))
@@ -248,6 +324,20 @@ def load_mesh(path: Path) -> tuple[FloatArray, IntArray]:
         vertices, triangles = _parse_obj_faces(path.read_text(errors="replace"))
     else:
         vertices, triangles = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+    if triangles.shape[0] == 0:
+        raise ValueError(f"mesh '{path}' holds no triangles")
+    return vertices, triangles
+
+
+def _load_collada(path: Path) -> tuple[FloatArray, IntArray]:
+    import trimesh  # imported lazily: only COLLADA meshes need it
+
+    try:
+        loaded = trimesh.load(str(path), force="mesh")
+    except Exception as exc:  # trimesh/pycollada raise many types for a bad file
+        raise ValueError(f"mesh '{path}' cannot be read as COLLADA: {exc}") from exc
+    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3).copy()
+    triangles = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3).copy()
     if triangles.shape[0] == 0:
         raise ValueError(f"mesh '{path}' holds no triangles")
     return vertices, triangles

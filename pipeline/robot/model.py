@@ -10,24 +10,39 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 
-from robonav.pipeline.robot.config import RobotConfig
-from robonav.pipeline.robot.link_geometry import LinkShape, convex_hull, parse_collision_shapes
+from robonav.pipeline.robot.config import CONTINUOUS_JOINT_RANGE_RAD, RobotConfig
+from robonav.pipeline.robot.link_geometry import (
+    LinkShape,
+    convex_hull,
+    find_package,
+    package_search_paths,
+    parse_collision_shapes,
+)
 from robonav.pipeline.types import FloatArray
 
 PYBULLET_DATA_PREFIX = "pybullet_data:"
 
 
-def resolve_urdf_path(urdf: str) -> Path:
-    """File of a `RobotConfig.urdf` value: `pybullet_data:<relative path>` or a file path."""
+def resolve_urdf_path(urdf: str, package_paths: Sequence[str | Path] = ()) -> Path:
+    """File of a `RobotConfig.urdf` value: `pybullet_data:<relative path>`, `package://NAME/<path>`
+    (found like a mesh URI, through `package_paths` and `ROS_PACKAGE_PATH`) or a file path."""
     if urdf.startswith(PYBULLET_DATA_PREFIX):
         import pybullet_data  # imported lazily: only configs naming it need the package
 
         path = Path(pybullet_data.getDataPath()) / urdf[len(PYBULLET_DATA_PREFIX):]
+    elif urdf.startswith("package://"):
+        name, _, tail = urdf[len("package://"):].partition("/")
+        package = find_package(name, package_search_paths(package_paths))
+        if package is None:
+            raise ValueError(f"robot.urdf '{urdf}': package '{name}' not found in robot.package_paths "
+                             f"{list(package_paths)} or ROS_PACKAGE_PATH")
+        path = package / tail
     else:
         path = Path(urdf)
     if not path.is_file():
@@ -81,6 +96,9 @@ class RobotModel:
             link: convex_hull(np.vstack([s.hull_vertices for s in shapes]))[0] for link, shapes in link_shapes.items()
         }
         self._adjacent = _adjacent_pairs(parent_link, frozenset(link_shapes), geometry_links)
+        self._geometry_links = geometry_links
+        self._continuous: frozenset[str] = frozenset()
+        self._link_names: frozenset[str] = frozenset(parent_link) | frozenset(parent_link.values())
         for arr in (self._lower, self._upper, *self._link_hulls.values()):
             arr.setflags(write=False)
 
@@ -90,30 +108,57 @@ class RobotModel:
 
         Raises:
             ValueError: the URDF, a joint or link named in `cfg`, or a mesh cannot be found, or a
-                planning joint is not a 1-DoF (revolute/prismatic) joint.
+                planning joint is not a 1-DoF (revolute/continuous/prismatic) joint.
         """
-        urdf_path = resolve_urdf_path(cfg.urdf)
-        full = pin.buildModelFromUrdf(str(urdf_path))
-        _check_names(full, cfg, urdf_path.name)
-        root = ET.parse(urdf_path).getroot()
+        urdf_path = resolve_urdf_path(cfg.urdf, cfg.package_paths)
+        try:
+            root = ET.parse(urdf_path).getroot()
+        except ET.ParseError as exc:
+            raise ValueError(f"robot.urdf {urdf_path.name} is not valid XML: {exc}") from exc
+        continuous = _continuous_as_revolute(root, cfg)
+        full = pin.buildModelFromXML(ET.tostring(root, encoding="unicode"))
+        link_names = frozenset(link.attrib["name"] for link in root.findall("link"))
+        _check_names(full, cfg, urdf_path.name, root)
         model = _reduced_model(full, cfg, _locked_positions(root, cfg))
         q_index = np.array([model.joints[model.getJointId(n)].idx_q for n in cfg.joint_names], dtype=np.int64)
 
-        shapes = parse_collision_shapes(urdf_path)
+        shapes = parse_collision_shapes(urdf_path, cfg.package_paths)
+        errors = []
         for i, link in enumerate(cfg.collision_links):
             if link not in shapes:
-                raise ValueError(f"robot.collision_links[{i}] '{link}' has no collision geometry in {urdf_path.name}")
+                errors.append(f"robot.collision_links[{i}] '{link}' has no collision geometry in {urdf_path.name}")
         for pair in cfg.allowed_collision_pairs:
-            for link in pair:
-                if link not in shapes:
-                    raise ValueError(f"robot.allowed_collision_pairs names '{link}', which has no collision geometry")
+            # A link without geometry cannot collide: MoveIt keeps such pairs too, so they are harmless.
+            errors += [f"robot.allowed_collision_pairs names '{link}', which is not a link of {urdf_path.name}"
+                       for link in pair if link not in link_names]
+        if errors:
+            raise ValueError("; ".join(errors))
         selected = {k: v for k, v in shapes.items() if not cfg.collision_links or k in cfg.collision_links}
         parent_link = {j.find("child").attrib["link"]: j.find("parent").attrib["link"] for j in root.findall("joint")}
-        return cls(cfg, model, q_index, selected, parent_link, frozenset(shapes))
+        robot = cls(cfg, model, q_index, selected, parent_link, frozenset(shapes))
+        robot._continuous = continuous
+        robot._link_names = link_names
+        return robot
 
     @property
     def config(self) -> RobotConfig:
         return self._config
+
+    @property
+    def continuous_joint_names(self) -> tuple[str, ...]:
+        """Planning joints that are `continuous` in the URDF (planned over `CONTINUOUS_JOINT_RANGE_RAD`
+        unless `position_limits_rad` names them)."""
+        return tuple(n for n in self.joint_names if n in self._continuous)
+
+    @property
+    def link_names(self) -> frozenset[str]:
+        """Every link of the URDF."""
+        return self._link_names
+
+    @property
+    def geometry_link_names(self) -> frozenset[str]:
+        """Links with collision geometry (checked or not)."""
+        return self._geometry_links
 
     @property
     def joint_names(self) -> tuple[str, ...]:
@@ -258,21 +303,59 @@ class RobotModel:
         return out
 
 
-def _check_names(full: pin.Model, cfg: RobotConfig, urdf_name: str) -> None:
+def _check_names(full: pin.Model, cfg: RobotConfig, urdf_name: str, root: ET.Element) -> None:
+    """Every joint and link the config names exists; all problems reported at once."""
     names = list(full.names)
+    fixed = {j.attrib["name"] for j in root.findall("joint") if j.attrib.get("type") == "fixed"}
+    errors = []
     for i, name in enumerate(cfg.joint_names):
         if name not in names:
-            raise ValueError(f"robot.joint_names[{i}] '{name}' is not a joint of {urdf_name} (joints: {names[1:]})")
-        if full.joints[names.index(name)].nq != 1:
-            raise ValueError(f"robot.joint_names[{i}] '{name}' is not a revolute or prismatic joint")
-    for name in cfg.fixed_joint_positions:
-        if name not in names or name in cfg.joint_names or full.joints[names.index(name)].nq != 1:
-            raise ValueError(
-                f"robot.fixed_joint_positions names '{name}', which is not a 1-DoF non-planning joint of {urdf_name}"
-            )
+            kind = "a fixed joint" if name in fixed else "not a joint"
+            errors.append(f"robot.joint_names[{i}] '{name}' is {kind} of {urdf_name} (movable joints: {names[1:]})")
+        elif full.joints[names.index(name)].nq != 1:
+            errors.append(f"robot.joint_names[{i}] '{name}' is not a revolute, continuous or prismatic joint")
+    for name, value in cfg.fixed_joint_positions.items():
+        if name in fixed:
+            # MoveIt group states list gripper joints a description may have welded (the UR5's
+            # Robotiq fingers): at 0 that is the joint's only position, so it is accepted.
+            if value != 0.0:
+                errors.append(f"robot.fixed_joint_positions.{name} is {value}, but it is a fixed joint of {urdf_name} "
+                              "(only 0 is possible)")
+        elif name not in names or name in cfg.joint_names or full.joints[names.index(name)].nq != 1:
+            errors.append(f"robot.fixed_joint_positions names '{name}', which is not a 1-DoF non-planning joint "
+                          f"of {urdf_name}")
     for label, link in (("base_link", cfg.base_link), ("end_effector_link", cfg.end_effector_link)):
         if not full.existBodyName(link):
-            raise ValueError(f"robot.{label} '{link}' is not a link of {urdf_name}")
+            errors.append(f"robot.{label} '{link}' is not a link of {urdf_name}")
+    if errors:
+        raise ValueError("; ".join(errors))
+
+
+def _continuous_as_revolute(root: ET.Element, cfg: RobotConfig) -> frozenset[str]:
+    """Turn every `continuous` joint of the URDF tree `root` into a bounded revolute one, in place.
+
+    Pinocchio models a continuous joint as a unit complex number (nq = 2), which every
+    configuration vector here (one value per joint) and the compiled kinematics cannot hold.
+    Planned over `position_limits_rad` or `CONTINUOUS_JOINT_RANGE_RAD` (two turns each way), an
+    angle needs no wrap-around: paths, interpolation and the executor stay linear in it.
+
+    Returns:
+        Names of the joints changed.
+    """
+    changed = set()
+    for joint in root.findall("joint"):
+        if joint.attrib.get("type") != "continuous":
+            continue
+        name = joint.attrib["name"]
+        lower, upper = cfg.position_limits_rad.get(name, CONTINUOUS_JOINT_RANGE_RAD)
+        joint.set("type", "revolute")
+        limit = joint.find("limit")
+        if limit is None:
+            limit = ET.SubElement(joint, "limit", {"effort": "0", "velocity": "0"})
+        limit.set("lower", repr(float(lower)))
+        limit.set("upper", repr(float(upper)))
+        changed.add(name)
+    return frozenset(changed)
 
 
 def _reduced_model(full: pin.Model, cfg: RobotConfig, locked_q: dict[str, float]) -> pin.Model:

@@ -8,16 +8,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from types import TracebackType
 
 import numpy as np
 import numpy.typing as npt
-import pybullet_data
 
 from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.link_geometry import urdf_with_resolved_meshes
+from robonav.pipeline.robot.model import resolve_urdf_path
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.bullet import pybullet as p
 from robonav.pipeline.sim.config import SimConfig
@@ -25,7 +28,6 @@ from robonav.pipeline.sim.rendering import DepthFrame, opengl_projection_matrix,
 
 __all__ = ["Contact", "DepthFrame", "SimWorld", "opengl_projection_matrix"]
 
-_PYBULLET_DATA_PREFIX = "pybullet_data:"
 _GRAVITY_M_S2 = 9.81
 # pybullet's POSITION_CONTROL motor asks the solver for the joint velocity
 # kp * position_error / dt + kd * (target_velocity - velocity) + velocity (roughly), capped by
@@ -96,15 +98,18 @@ class SimWorld:
 
     def _load_robot(self) -> None:
         cid, config = self._client, self._robot_config
-        urdf_path = config.urdf
-        if urdf_path.startswith(_PYBULLET_DATA_PREFIX):
-            urdf_path = pybullet_data.getDataPath() + "/" + urdf_path[len(_PYBULLET_DATA_PREFIX):].lstrip("/")
-        try:
-            # No URDF_USE_SELF_COLLISION flag: the arm never collides with itself here; self-collision
-            # is the planner's business and would only add solver noise at the wrist.
-            self._robot = p.loadURDF(urdf_path, useFixedBase=True, physicsClientId=cid)
-        except p.error as exc:
-            raise ValueError(f"robot.urdf '{config.urdf}' could not be loaded from {urdf_path}") from exc
+        urdf_path = resolve_urdf_path(config.urdf, config.package_paths)
+        # pybullet knows no ROS packages: it loads a copy whose mesh paths are resolved as the
+        # collision model resolves them (package paths, ROS_PACKAGE_PATH, the URDF's folder).
+        with tempfile.TemporaryDirectory(prefix="robonav-urdf-") as folder:
+            resolved = Path(folder) / urdf_path.name
+            resolved.write_text(urdf_with_resolved_meshes(urdf_path, config.package_paths), encoding="utf-8")
+            try:
+                # No URDF_USE_SELF_COLLISION flag: the arm never collides with itself here; self-collision
+                # is the planner's business and would only add solver noise at the wrist.
+                self._robot = p.loadURDF(str(resolved), useFixedBase=True, physicsClientId=cid)
+            except p.error as exc:
+                raise ValueError(f"robot.urdf '{config.urdf}' could not be loaded from {urdf_path}") from exc
 
         base_name = p.getBodyInfo(self._robot, physicsClientId=cid)[0].decode()
         if config.base_link != base_name:

@@ -40,8 +40,10 @@ from robonav.pipeline.planning.metrics import path_length_rad
 from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
 from robonav.pipeline.planning.ompl_planners import seed_ompl_once
 from robonav.pipeline.planning.result import PlanStatus
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
+from robonav.services.config import load_robot_file
 
 BENCH_RANGE_RAD = 1.0
 """RRTConnect range for the benchmark: MPLib's MBM figures solve 99.4 % with it, 82.7 % with OMPL's default."""
@@ -115,12 +117,15 @@ def add_parser(kinds: Any) -> None:  # noqa: ANN401 - argparse's private subpars
     plan.add_argument("--cloud-inflation", type=_non_negative_float, default=PerceptionConfig().inflation_m,
                       help="--scene cloud: occupancy inflation [m] (default: the perception default)")
     plan.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    plan.add_argument("--robot", type=Path, default=None,
+                      help="robot file (`robonav robot init` writes one) whose joints the problems use; default: the Panda")
 
 
 def main(args: argparse.Namespace) -> int:
     """`robonav bench plan`: run, print the table (and unsolved problems), write the JSON."""
     try:
         sets = select(load_problem_sets(args.problems), families=args.families, limit=args.limit)
+        robot_base = load_robot_file(args.robot) if args.robot is not None else None
     except (OSError, ValueError) as exc:
         print(f"robonav bench plan: {exc}", file=sys.stderr)
         return 2
@@ -129,13 +134,15 @@ def main(args: argparse.Namespace) -> int:
         # OMPL takes one seed per process, before its first sampler (see seed_ompl_once).
         seed_ompl_once(args.seed)
         records = run_plan_benchmark(sets, planner_id=args.planner, time_limit_s=args.time_limit, seed=args.seed,
-                                     padding_m=args.padding, scene=args.scene, progress=progress,
+                                     padding_m=args.padding, scene=args.scene, progress=progress, robot=robot_base,
                                      perception=dataclasses.replace(PerceptionConfig(), inflation_m=args.cloud_inflation))
     except ValueError as exc:
         print(f"robonav bench plan: {exc}", file=sys.stderr)
         return 2
     report = build_report(records, config={
         "problems_path": str(args.problems), "families": [s.family for s in sets], "limit": args.limit,
+        "robot": robot_base.name if robot_base is not None else "panda",
+        "robot_file": str(args.robot) if args.robot is not None else None,
         "planner": args.planner, "time_limit_s": args.time_limit, "seed": args.seed, "padding_m": args.padding,
         "scene": args.scene, "range_rad": BENCH_RANGE_RAD, "edge_resolution_rad": BENCH_EDGE_RESOLUTION_RAD,
         "path_check_resolution_rad": BENCH_PATH_CHECK_RESOLUTION_RAD,
@@ -207,6 +214,7 @@ def run_plan_benchmark(
     scene: SceneKind = "primitives",
     progress: TextIO | None = None,
     perception: PerceptionConfig | None = None,
+    robot: RobotConfig | None = None,
 ) -> list[ProblemRecord]:
     """Plan every problem, time each `plan` call and re-check every returned path on the meshes.
 
@@ -220,6 +228,7 @@ def run_plan_benchmark(
             map of their sampled surfaces. The re-check always uses the primitives.
         progress: Stream for the progress bar, or None.
         perception: Occupancy map settings for `scene='cloud'`; None takes the defaults.
+        robot: The robot the problems are for (their joint names must match); None is the Panda.
 
     Returns:
         One record per problem, in family and problem order.
@@ -230,8 +239,11 @@ def run_plan_benchmark(
                                    path_check_resolution_rad=BENCH_PATH_CHECK_RESOLUTION_RAD, seed=seed)
     robots: dict[tuple[Any, ...], RobotModel] = {}
     records: list[ProblemRecord] = []
+    # The file's own model first: its errors are the user's, and it names the URDF's links.
+    base_config = robot
+    known_links = RobotModel.from_config(base_config).link_names if base_config is not None else None
     for problem_set in sets:
-        robot_config = mbm_robot_config(problem_set, padding_m=padding_m)
+        robot_config = mbm_robot_config(problem_set, padding_m=padding_m, base=base_config, known_links=known_links)
         key = (robot_config.joint_names, tuple(sorted(robot_config.fixed_joint_positions.items())),
                robot_config.allowed_collision_pairs)
         if key not in robots:

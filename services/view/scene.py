@@ -112,10 +112,11 @@ def wxyz_of(rotation: FloatArray) -> npt.NDArray[np.float64]:
 
 def load_urdf(robot: RobotModel) -> yourdfpy.URDF:
     """The robot's URDF with visual meshes, mesh references resolved like the collision model's."""
-    urdf_path = resolve_urdf_path(robot.config.urdf)
+    urdf_path = resolve_urdf_path(robot.config.urdf, robot.config.package_paths)
+    packages = robot.config.package_paths
     return yourdfpy.URDF.load(
         urdf_path, build_scene_graph=True, load_meshes=True, build_collision_scene_graph=False,
-        load_collision_meshes=False, filename_handler=lambda fname: str(resolve_mesh_path(fname, urdf_path)))
+        load_collision_meshes=False, filename_handler=lambda fname: str(resolve_mesh_path(fname, urdf_path, packages)))
 
 
 class UrdfPose:

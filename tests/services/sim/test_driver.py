@@ -82,6 +82,16 @@ def _stats(client: RobonavClient) -> SimStatsResponse:
     return stats
 
 
+def _wait_rejected(client: RobonavClient, count: int, timeout_s: float = 5.0) -> int:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        total = sum(_stats(client).setpoints_rejected.values())
+        if total >= count:
+            return total
+        time.sleep(0.02)
+    raise AssertionError(f"the sim judged fewer than {count} setpoints in {timeout_s} s")
+
+
 def _wait_at_rest(client: RobonavClient, joints: JointLog, timeout_s: float = 10.0) -> np.ndarray:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -113,11 +123,13 @@ def test_setpoints_beyond_the_arms_limits_are_not_followed(driver_stack: tuple[R
     }
     before = _stats(client)
     started = time.monotonic()
+    seen = sum(before.setpoints_rejected.values())
     for payloads in bad.values():
         for payload in payloads:
             client.session.put(client.keys.setpoint, payload)
-            time.sleep(0.05)  # one physics step at least: the sim takes the newest setpoint per step
-    time.sleep(0.3)
+            # The sim takes the newest setpoint per physics step: wait for this one to be judged
+            # before the next, so a slow step on a loaded machine does not merge two.
+            seen = _wait_rejected(client, seen + 1)
     after = _stats(client)
     assert after.setpoints_followed == before.setpoints_followed, "a setpoint beyond the limits was followed"
     for reason, payloads in bad.items():
