@@ -188,7 +188,7 @@ class ConfigIssue:
 def check_config(path: str | Path) -> tuple[RobonavConfig | None, list[ConfigIssue]]:
     """Read a config file and report every error at once, each with its line.
 
-    Every key is checked, also after a bad one; a section with a bad key skips its cross-key
+    A robot file is checked as the `robot` section. Every key is checked, also after a bad one; a section with a bad key skips its cross-key
     checks (they would repeat the fault). Duplicate keys, which YAML loaders silently let the
     last one win, are errors here. Returns (the config, []) or (None, the errors in line order).
     """
@@ -206,9 +206,14 @@ def check_config(path: str | Path) -> tuple[RobonavConfig | None, list[ConfigIss
         return None, [ConfigIssue(str(file), mark.line + 1 if mark else 0, "<file>", f"invalid YAML: {exc.problem}")]
     except yaml.YAMLError as exc:
         return None, [ConfigIssue(str(file), 0, "<file>", f"invalid YAML: {exc}")]
+    # A robot file (`robonav robot init`) holds RobotConfig's keys at its top: checked as the
+    # `robot` section of a config that keeps every other default.
+    robot_file = isinstance(data, dict) and "urdf" in data and not data.keys() & _SECTIONS
+    if robot_file:
+        data = {"robot": data}
     lines: dict[str, int] = {}
     issues = [ConfigIssue(str(file), line, key, "duplicate key (YAML would keep only the last)")
-              for key, line in _key_lines(root, "", lines)]
+              for key, line in _key_lines(root, "robot" if robot_file else "", lines)]
     if isinstance(data, dict) and isinstance(data.get("robot"), dict):
         try:
             data = {**data, "robot": _robot_paths_resolved(data["robot"], file, "robot")}
@@ -223,6 +228,9 @@ def check_config(path: str | Path) -> tuple[RobonavConfig | None, list[ConfigIss
             issues.append(ConfigIssue(str(file), _line_of(exc.key, lines), exc.key, exc.detail))
     issues.sort(key=lambda issue: issue.line)
     return (cfg if not issues else None), issues
+
+
+_SECTIONS = frozenset(f.name for f in dataclasses.fields(RobonavConfig))
 
 
 def _key_lines(node: yaml.Node | None, prefix: str, lines: dict[str, int]) -> list[tuple[str, int]]:

@@ -10,6 +10,8 @@ import pytest
 from robonav.services.config import check_config, default_config_path, load_config
 from robonav.services.tools import config_check
 
+from ...conftest import REPO_ROOT
+
 THREE_ERRORS = """\
 cell: arm0
 executor:
@@ -70,3 +72,15 @@ def test_print_shows_every_default_and_loads_back_equal(tmp_path: Path, capsys: 
     bad.write_text("planer: {}\n", encoding="utf-8")
     assert config_check.main(["print", str(bad)]) == config_check.EXIT_BAD_CONFIG
     assert f"{bad}:1: key 'planer': unknown key" in capsys.readouterr().err
+
+
+def test_a_robot_file_is_checked_as_the_robot_section(tmp_path: Path) -> None:
+    shipped = REPO_ROOT / "configs" / "ur5.yaml"
+    cfg, issues = check_config(shipped)
+    assert issues == [] and cfg is not None and cfg.robot.name == "ur5_robotiq85"
+    bad = tmp_path / "robot.yaml"
+    text = shipped.read_text(encoding="utf-8").replace("padding_m: 0.01", "padding_m: thick\ngripper: 2")
+    bad.write_text(text.replace('"../../shared', f'"{REPO_ROOT.parent / "shared"}'), encoding="utf-8")
+    cfg, issues = check_config(bad)
+    assert cfg is None
+    assert [(issue.key, issue.line) for issue in issues] == [("robot.padding_m", 14), ("robot.gripper", 15)], issues
