@@ -334,6 +334,21 @@ class Node:
         stop.wait()
 
 
+def load_cli_config(config_path: str | None, zenoh_config_path: str | None) -> RobonavConfig:
+    """A command's config: `--config` (None: the packaged default) with `--zenoh-config`, when
+    given, over `zenoh.config_file`; the Zenoh file is read now, so a bad one is a config error
+    here and not a crash when the session opens.
+
+    Raises:
+        ConfigError: a bad config or Zenoh config file.
+    """
+    cfg = load_config(config_path)
+    if zenoh_config_path is not None:
+        cfg = dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, config_file=zenoh_config_path))
+    to_zenoh_config(cfg.zenoh)
+    return cfg
+
+
 def parse_args_and_config(prog: str, description: str, argv: list[str] | None,
                           parents: tuple[argparse.ArgumentParser, ...] = (),
                           ) -> tuple[argparse.Namespace, RobonavConfig] | None:
@@ -350,10 +365,7 @@ def parse_args_and_config(prog: str, description: str, argv: list[str] | None,
     args = parser.parse_args(argv)
     setup_logging(args.log_level, args.log_format)
     try:
-        cfg = load_config(args.config)
-        if args.zenoh_config is not None:
-            cfg = dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config))
-        to_zenoh_config(cfg.zenoh)  # a bad Zenoh config file is a config error, not a crash later
+        cfg = load_cli_config(args.config, args.zenoh_config)
         check_example_passwords(cfg.zenoh.config_file)
         return args, cfg
     except ConfigError as exc:

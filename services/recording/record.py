@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import dataclasses
 import datetime
 import json
 import logging
@@ -36,8 +35,7 @@ import zenoh
 import zenoh.ext
 
 from robonav.pipeline.config import ConfigError
-from robonav.services.common import add_logging_arguments, open_session, setup_logging, stop_on_signals
-from robonav.services.config import load_config
+from robonav.services.common import add_logging_arguments, load_cli_config, open_session, setup_logging, stop_on_signals
 from robonav.services.keys import Keys
 from robonav.services.recording.writer import CHECKPOINT_S, CountersFile, frame_finish, frame_message
 
@@ -217,9 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     setup_logging(args.log_level, args.log_format)
     try:
-        cfg = load_config(args.config)
-        if args.zenoh_config is not None:
-            cfg = dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config))
+        cfg = load_cli_config(args.config, args.zenoh_config)
     except ConfigError as exc:
         log.error("%s", exc)
         return 2

@@ -19,7 +19,6 @@ map's age by its stamp takes it as old.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import queue
@@ -35,8 +34,7 @@ import numpy as np
 import zenoh
 
 from robonav.pipeline.config import ConfigError
-from robonav.services.common import add_logging_arguments, open_session, setup_logging, stop_on_signals
-from robonav.services.config import load_config
+from robonav.services.common import add_logging_arguments, load_cli_config, open_session, setup_logging, stop_on_signals
 from robonav.services.recording.files import Recording, RecordingError
 from robonav.services.recording.reader import ReadAhead
 
@@ -273,9 +271,7 @@ def main(argv: list[str] | None = None) -> int:
                                 cell=args.cell)
         for key in options.keys:
             zenoh.KeyExpr(key)
-        cfg = load_config(args.config)
-        if args.zenoh_config is not None:
-            cfg = dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config))
+        cfg = load_cli_config(args.config, args.zenoh_config)
         recording = Recording(args.file, recover=True)
         if not recording.complete:
             log.warning("%s is truncated (its writer was killed): reading its %d bytes up to byte %d, its last "

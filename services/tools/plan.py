@@ -16,7 +16,6 @@ sent, nothing moves.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time
@@ -28,8 +27,7 @@ import zenoh
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, PlanRequest, PlanResponse
 from robonav.services.client import QueryFailed, RobonavClient
-from robonav.services.common import open_session, to_zenoh_config
-from robonav.services.config import load_config
+from robonav.services.common import load_cli_config, open_session
 from robonav.services.tools.stop import (
     EXIT_CONFIG,
     EXIT_FAILED,
@@ -128,9 +126,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"robonav plan: --velocity-scaling must be in (0, 1], got {args.velocity_scaling}", file=sys.stderr)
         return EXIT_CONFIG
     try:
-        cfg = load_config(args.config)
-        zcfg = cfg.zenoh if args.zenoh_config is None else dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config)
-        to_zenoh_config(zcfg)
+        cfg = load_cli_config(args.config, args.zenoh_config)
+        zcfg = cfg.zenoh
     except (ConfigError, ValueError) as exc:
         print(f"robonav plan: {exc}", file=sys.stderr)
         return EXIT_CONFIG

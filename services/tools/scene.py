@@ -20,7 +20,6 @@ JSON with `--json`). Exit codes as `robonav plan`: 0 done, 1 a structured error 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time
@@ -33,8 +32,7 @@ from robonav.pipeline.config import ConfigError
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.messages import ErrorReply, SceneObjectSpec, SceneRequest, SceneResponse
 from robonav.services.client import QueryFailed, reply_message
-from robonav.services.common import open_session, to_zenoh_config
-from robonav.services.config import load_config
+from robonav.services.common import load_cli_config, open_session
 from robonav.services.keys import Keys
 from robonav.services.tools.stop import EXIT_CONFIG, EXIT_FAILED, EXIT_NO_REPLY, EXIT_OK
 
@@ -190,9 +188,8 @@ def _plain(response: SceneResponse | ErrorReply) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        cfg = load_config(args.config)
-        zcfg = cfg.zenoh if args.zenoh_config is None else dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config)
-        to_zenoh_config(zcfg)
+        cfg = load_cli_config(args.config, args.zenoh_config)
+        zcfg = cfg.zenoh
     except (ConfigError, ValueError) as exc:
         print(f"robonav scene: {exc}", file=sys.stderr)
         return EXIT_CONFIG

@@ -34,8 +34,7 @@ import zenoh
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.wire.messages import ErrorReply
 from robonav.services.client import QueryFailed, RobonavClient
-from robonav.services.common import open_session, to_zenoh_config
-from robonav.services.config import load_config
+from robonav.services.common import load_cli_config, open_session
 
 REST_VELOCITY_RAD_S = 0.01
 """Every joint slower than this counts as at rest [rad/s]."""
@@ -159,9 +158,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        cfg = load_config(args.config)
-        zcfg = cfg.zenoh if args.zenoh_config is None else dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config)
-        to_zenoh_config(zcfg)
+        cfg = load_cli_config(args.config, args.zenoh_config)
+        zcfg = cfg.zenoh
     except (ConfigError, ValueError) as exc:
         print(f"robonav stop: {exc}", file=sys.stderr)
         return EXIT_CONFIG

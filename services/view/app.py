@@ -10,7 +10,6 @@ headless Chromium and writes it as a PNG.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
 import os
 import signal
@@ -33,11 +32,12 @@ from robonav.services.client import RobonavClient
 from robonav.services.common import (
     add_logging_arguments,
     declare_latched_subscriber,
+    load_cli_config,
     open_session,
     setup_logging,
     stop_on_signals,
 )
-from robonav.services.config import RobonavConfig, load_config, perceived_world_from_camera
+from robonav.services.config import RobonavConfig, perceived_world_from_camera
 from robonav.services.keys import Keys
 from robonav.services.view.gate import TOKEN_ENV, TokenGate, is_loopback, new_token
 
@@ -372,9 +372,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     setup_logging(args.log_level, args.log_format)
     try:
-        cfg = load_config(args.config)
-        if args.zenoh_config is not None:
-            cfg = dataclasses.replace(cfg, zenoh=dataclasses.replace(cfg.zenoh, config_file=args.zenoh_config))
+        cfg = load_cli_config(args.config, args.zenoh_config)
         options = ViewOptions(host=args.host, port=args.port, max_cloud_points=args.max_cloud_points,
                               cloud_rate_hz=args.cloud_rate_hz, token=view_token(args))
         width, height = (int(v) for v in args.size.lower().split("x"))
