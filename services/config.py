@@ -151,6 +151,16 @@ def default_config_path() -> Path:
     return Path(str(resources.files("robonav.configs") / DEFAULT_CONFIG_NAME))
 
 
+def _read_yaml(file: Path) -> Any:
+    """The YAML data of `file`; ConfigError when it cannot be read or parsed."""
+    try:
+        return yaml.safe_load(file.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(str(file), "<file>", f"cannot read: {exc.strerror or exc}") from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(str(file), "<file>", f"invalid YAML: {exc}") from exc
+
+
 def load_config(path: str | Path | None = None) -> RobonavConfig:
     """Read a YAML config file strictly; `None` reads the packaged default.
 
@@ -158,14 +168,7 @@ def load_config(path: str | Path | None = None) -> RobonavConfig:
         ConfigError: unreadable file, bad YAML, unknown key or wrong type (names file and key).
     """
     file = Path(path) if path is not None else default_config_path()
-    try:
-        text = file.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(str(file), "<file>", f"cannot read: {exc.strerror or exc}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(str(file), "<file>", f"invalid YAML: {exc}") from exc
+    data = _read_yaml(file)
     if isinstance(data, dict) and isinstance(data.get("robot"), dict):
         data = {**data, "robot": _robot_paths_resolved(data["robot"], file, "robot")}
     return _with_extrinsics(from_mapping(RobonavConfig, data, source=str(file)), file)
@@ -286,12 +289,7 @@ def load_robot_file(path: str | Path) -> RobotConfig:
             URDF must state left out (all of those named at once).
     """
     file = Path(path)
-    try:
-        data = yaml.safe_load(file.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(str(file), "<file>", f"cannot read: {exc.strerror or exc}") from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(str(file), "<file>", f"invalid YAML: {exc}") from exc
+    data = _read_yaml(file)
     if not isinstance(data, dict):
         raise ConfigError(str(file), "<root>", f"expected a mapping of robot keys, got {type(data).__name__}")
     return from_mapping(RobotConfig, _robot_paths_resolved(data, file, ""), source=str(file))
@@ -389,10 +387,5 @@ def read_extrinsics(path: str | Path) -> CameraExtrinsics:
     what `cameras[].position_m`/`cameras[].quat_xyzw` hold: world_from_camera.
     """
     file = Path(path)
-    try:
-        data = yaml.safe_load(file.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(str(file), "<file>", f"cannot read: {exc.strerror or exc}") from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(str(file), "<file>", f"invalid YAML: {exc}") from exc
+    data = _read_yaml(file)
     return from_mapping(CameraExtrinsics, data, source=str(file))
