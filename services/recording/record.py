@@ -205,7 +205,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--zenoh-config", metavar="FILE",
                         help="Zenoh JSON5 config (TLS, login, e.g. client-viewer.json5); overrides zenoh.config_file")
     parser.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
-    parser.add_argument("--no-foxglove", action="store_true", help="do not add foxglove.PointCloud copies of clouds")
+    parser.add_argument("--no-foxglove", action="store_true", help="write only the raw channels (no Foxglove point clouds, transforms, scene updates, JSON copies)")
     parser.add_argument("--max-buffer-mb", type=float, default=DEFAULT_MAX_BUFFER_MB,
                         help="memory for samples waiting to be written; beyond it samples are dropped and counted")
     parser.add_argument("--json", help="write the summary (counts per key) to this file")
