@@ -39,6 +39,16 @@ class LinkFrames:
         if base_frame not in self.link_names:
             raise ValueError(f"base frame '{base_frame}' is not a link of the URDF (links: {list(self.link_names)})")
         self.base_frame = base_frame
+        # (parent link, child link) of every joint, in URDF order: the tree a viewer's transforms follow.
+        edges = []
+        for joint in root.findall("joint"):
+            parent, child = joint.find("parent"), joint.find("child")
+            if parent is None or child is None or parent.get("link") is None or child.get("link") is None:
+                raise ValueError(f"URDF joint '{joint.get('name')}' lacks a parent or child link")
+            edges.append((str(parent.get("link")), str(child.get("link"))))
+        self.edges: tuple[tuple[str, str], ...] = tuple(edges)
+        children = {child for _, child in self.edges}
+        self.root_link = next(name for name in self.link_names if name not in children)
         self._data = self._model.createData()
         self._frame_ids = {name: self._model.getFrameId(name, pin.BODY) for name in self.link_names}
         self._base_id = self._frame_ids[base_frame]
@@ -84,6 +94,21 @@ class LinkFrames:
         pin.framesForwardKinematics(self._model, self._data, self._q(positions))
         world_from_root = np.linalg.inv(self._data.oMf[self._base_id].homogeneous)
         return {name: world_from_root @ self._data.oMf[fid].homogeneous for name, fid in self._frame_ids.items()}
+
+    def tree_transforms(self, positions: Mapping[str, float],
+                        world_frame: str = "world") -> list[tuple[str, str, FloatArray]]:
+        """(parent, child, parent_from_child (4, 4)) of the URDF root in `world_frame`, then of each
+        joint's child link in its parent link: the tree ROS's robot_state_publisher sends, so a
+        viewer that also reads the URDF (and its joint origins) finds the same parents.
+
+        Raises:
+            ValueError: a position is not finite.
+        """
+        poses = self.world_from_links(positions)
+        out = [(world_frame, self.root_link, poses[self.root_link])]
+        for parent, child in self.edges:
+            out.append((parent, child, np.linalg.inv(poses[parent]) @ poses[child]))
+        return out
 
     def link_positions(self, joint_names: Sequence[str], path: FloatArray, link: str) -> FloatArray:
         """(N, 3) origin of `link` in world at each row of `path` (N, len(joint_names)) [m].

@@ -8,15 +8,18 @@ protobuf encoding) or with a JSON Schema (`json` encoding, `jsonschema` schema e
 | --- | --- | --- |
 | `camera/<id>/cloud` | `<key>/foxglove` | `foxglove.PointCloud` (frame: the camera id) |
 | `cameras` | `<key>/foxglove` | `foxglove.FrameTransforms`: world -> each camera |
-| `robot/joint_states` | `<key>/foxglove` | `foxglove.FrameTransforms`: world -> each URDF link |
+| `robot/joint_states` | `<key>/foxglove` | `foxglove.FrameTransforms`: world -> URDF root, parent -> child link of each joint |
 | `robot/joint_states` | `<key>/json` | `robonav.JointStateJson` (names, position, velocity, by_name) |
 | `perception/occupancy` | `<key>/foxglove` | `foxglove.SceneUpdate`: one cube per occupied voxel |
 | `perception/clusters` | `<key>/foxglove` | `foxglove.SceneUpdate`: one box per cluster |
 | `planner/scene_state` | `<key>/foxglove` | `foxglove.SceneUpdate`: objects, attached ones in their link's frame |
 | `executor/path` | `<key>/foxglove` | `foxglove.SceneUpdate`: the end-effector's line through the path |
 | `executor/status` | `<key>/json` | `robonav.ExecutorStatus` (the message's JSON form) |
+| `robot/description` | `<key>/urdf` | `std_msgs/String` as JSON (`data`: the URDF text) |
 
-and the URDF of `robot/description` as an attachment. Link poses need the robot: joint states
+and the URDF of `robot/description` as an attachment. The `std_msgs/String` channel is what
+Foxglove's URDF layer reads a robot from (source "topic"); it then draws each link at the
+frame of the same name that the joint states' transforms carry. Link poses need the robot: joint states
 and a path that arrive before `robot/description` get no transforms or line (counted as
 skipped); the latest path is drawn as soon as the description comes.
 """
@@ -68,6 +71,16 @@ PATH_RGBA = (1.0, 0.0, 0.78, 1.0)
 """The executed path's magenta of `robonav view`."""
 PATH_THICKNESS_PX = 4.0
 
+URDF_SUFFIX = "/urdf"
+URDF_STRING_SCHEMA: dict[str, Any] = {
+    "$schema": JSON_SCHEMA_DIALECT,
+    "title": "std_msgs/String",
+    "description": "The URDF text of robot/description, as a ROS std_msgs/String (what Foxglove's URDF layer reads).",
+    "type": "object",
+    "properties": {"data": {"type": "string"}},
+    "required": ["data"],
+    "additionalProperties": False,
+}
 JOINT_STATE_JSON_SCHEMA: dict[str, Any] = {
     "$schema": JSON_SCHEMA_DIALECT,
     "title": "robonav.JointStateJson",
@@ -213,9 +226,9 @@ class FoxgloveConverter:
             self._robot, self._links, self.robot_error = None, None, str(exc)
             raise
         attachment = Attachment(f"{robot.name}.urdf", "application/xml", robot.urdf.encode())
-        derived: list[Derived] = []
+        derived = [_json(key + URDF_SUFFIX, URDF_STRING_SCHEMA, {"data": robot.urdf})]
         if self._pending_path is not None:
-            derived = self._path(*self._pending_path)
+            derived += self._path(*self._pending_path)
         return derived, [attachment]
 
     def _cameras(self, key: str, cameras: Cameras) -> list[Derived]:
@@ -231,9 +244,9 @@ class FoxgloveConverter:
         out = [_json(key + JSON_SUFFIX, JOINT_STATE_JSON_SCHEMA, {
             "stamp": state.stamp, "names": names, "position": position, "velocity": velocity, "by_name": by_name})]
         if self._links is not None:
-            poses = self._links.world_from_links(dict(zip(names, position, strict=True)))
+            tree = self._links.tree_transforms(dict(zip(names, position, strict=True)), WORLD_FRAME)
             out.append(_protobuf(key + FOXGLOVE_SUFFIX, FrameTransforms(transforms=[
-                frame_transform(state.stamp, WORLD_FRAME, link, pose) for link, pose in poses.items()])))
+                frame_transform(state.stamp, parent, child, pose) for parent, child, pose in tree])))
         return out
 
     def _occupancy(self, key: str, occupancy: Occupancy) -> list[Derived]:

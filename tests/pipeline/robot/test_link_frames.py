@@ -81,3 +81,18 @@ def test_bad_positions_and_paths_fail_clearly() -> None:
         frames.link_positions(("spin", "slide"), np.zeros((3, 3)), "slider")
     with pytest.raises(ValueError, match="not a link"):
         frames.link_positions(("spin",), np.zeros((3, 1)), "gripper")
+
+
+def test_tree_transforms_compose_to_the_link_poses() -> None:
+    frames = LinkFrames(TOY_URDF, "turret")
+    positions = {"spin": 0.7, "slide": 0.4}
+    tree = frames.tree_transforms(positions)
+    assert [(parent, child) for parent, child, _ in tree] == [
+        ("world", "base"), ("base", "turret"), ("turret", "slider"), ("turret", "twin")]
+    parent_of = {child: (parent, pose) for parent, child, pose in tree}
+    for link, expected in frames.world_from_links(positions).items():
+        pose, frame = np.eye(4), link
+        while frame != "world":  # walk up to the world, as a viewer's transform tree does
+            parent, parent_from_child = parent_of[frame]
+            pose, frame = parent_from_child @ pose, parent
+        np.testing.assert_allclose(pose, expected, atol=1e-12)

@@ -7,6 +7,7 @@ the planner's objects, the executor's path as the end effector's line, the URDF 
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -21,6 +22,7 @@ from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from mcap.reader import make_reader
 
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.transforms import make_transform
 from robonav.pipeline.wire.messages import (
     Cameras,
     ErrorReply,
@@ -113,6 +115,17 @@ def recording(client: RobonavClient, session: zenoh.Session, tmp_path_factory: p
     return path
 
 
+def _world_from(parent_of: dict[str, Any], frame: str) -> np.ndarray:
+    """world_from_frame, walking FrameTransforms up to `world` as a viewer's transform tree does."""
+    pose = np.eye(4)
+    while frame != "world":
+        t = parent_of[frame]
+        parent_from_child = make_transform([t.translation.x, t.translation.y, t.translation.z],
+                                           [t.rotation.x, t.rotation.y, t.rotation.z, t.rotation.w])
+        pose, frame = parent_from_child @ pose, t.parent_frame_id
+    return pose
+
+
 def _read(path: Path) -> tuple[dict[str, list[tuple[int, bytes]]], dict[str, Any], list[Any]]:
     """Messages (log time, data) per topic, (channel, schema) per topic, attachments."""
     messages: dict[str, list[tuple[int, bytes]]] = {}
@@ -136,7 +149,8 @@ def test_every_channel_decodes_with_its_declared_schema(recording: Path, client:
                f"{root}/perception/clusters/foxglove": "foxglove.SceneUpdate",
                f"{root}/planner/scene_state/foxglove": "foxglove.SceneUpdate",
                f"{root}/executor/path/foxglove": "foxglove.SceneUpdate",
-               f"{root}/executor/status/json": "robonav.ExecutorStatus"}
+               f"{root}/executor/status/json": "robonav.ExecutorStatus",
+               f"{root}/robot/description/urdf": "std_msgs/String"}
     # Every configured camera's cloud, as foxglove.PointCloud in its own frame.
     derived.update({f"{root}/camera/{c.camera_id}/cloud/foxglove": "foxglove.PointCloud" for c in DEFAULT.cameras
                     if c.output in ("cloud", "both")})
@@ -166,6 +180,7 @@ def test_derived_channels_say_what_the_raw_ones_say(recording: Path, client: Rob
     description = RobotDescription.from_wire(messages[f"{root}/robot/description"][-1][1])
     assert [(a.name, a.media_type, a.data.decode()) for a in attachments] == [
         (f"{description.name}.urdf", "application/xml", description.urdf)]
+    assert [json.loads(d) for _, d in messages[f"{root}/robot/description/urdf"]] == [{"data": description.urdf}]
 
     cameras = Cameras.from_wire(messages[f"{root}/cameras"][-1][1])
     transforms = decoded(f"{root}/cameras/foxglove")[-1][1].transforms
@@ -177,14 +192,16 @@ def test_derived_channels_say_what_the_raw_ones_say(recording: Path, client: Rob
     raw_states = {t: JointState.from_wire(d) for t, d in messages[f"{root}/robot/joint_states"]}
     link_frames = decoded(f"{root}/robot/joint_states/foxglove")
     assert len(link_frames) >= len(raw_states) - 50
+    links = set(re.findall(r'<link name="([^"]+)"', description.urdf))
     for log_time, frames in link_frames[:: max(1, len(link_frames) // 5)]:
         state = raw_states[log_time]
-        by_child = {t.child_frame_id: t for t in frames.transforms}
-        assert {t.parent_frame_id for t in frames.transforms} == {"world"}
-        assert "panda_leftfinger" in by_child and "panda_link0" in by_child
-        hand = ROBOT.frame_pose(state.position[:7], "panda_hand")[:3, 3]
-        t = by_child["panda_hand"].translation
-        np.testing.assert_allclose([t.x, t.y, t.z], hand, atol=1e-9)
+        # The tree robot_state_publisher sends: world -> root link, then each joint's parent -> child.
+        parent_of = {t.child_frame_id: t for t in frames.transforms}
+        assert set(parent_of) == links and parent_of["panda_link0"].parent_frame_id == "world"
+        assert parent_of["panda_hand"].parent_frame_id == "panda_link8"
+        for link in ("panda_hand", "panda_leftfinger", "panda_link4"):
+            np.testing.assert_allclose(_world_from(parent_of, link), ROBOT.frame_pose(state.position[:7], link),
+                                       atol=1e-9)
     plotted = json.loads(messages[f"{root}/robot/joint_states/json"][-1][1])
     last = JointState.from_wire(messages[f"{root}/robot/joint_states"][-1][1])
     assert plotted["by_name"]["panda_joint4"]["position"] == pytest.approx(last.position[3])
@@ -213,3 +230,24 @@ def test_derived_channels_say_what_the_raw_ones_say(recording: Path, client: Rob
 
     states = [json.loads(d)["state"] for _, d in messages[f"{root}/executor/status/json"]]
     assert "executing" in states
+
+
+def test_the_foxglove_layout_shows_channels_the_recording_has(recording: Path, client: RobonavClient) -> None:
+    """docs/foxglove-layout.json (cell arm0) names only topics a recording of the stack has, and
+    every plotted field is in their messages."""
+    layout = json.loads((Path(__file__).resolve().parents[3] / "docs" / "foxglove-layout.json").read_text())
+    messages, _, _ = _read(recording)
+    panels = layout["configById"]
+    scene = next(c for name, c in panels.items() if name.startswith("3D!"))
+    topics = set(scene["topics"]) | {layer["topic"] for layer in scene["layers"].values() if "topic" in layer}
+    paths = [p["value"] for c in panels.values() for p in c.get("paths", [])]
+    paths += [c["topicPath"] for c in panels.values() if "topicPath" in c]
+    assert client.keys.root == "robonav/arm0" and len(paths) > 10
+    assert topics - set(messages) == set()
+    for path in paths:
+        topic, _, field = path.partition(".")
+        assert topic in messages, path
+        value = json.loads(messages[topic][-1][1])
+        for part in filter(None, field.split(".")):
+            assert part in value, path
+            value = value[part]
