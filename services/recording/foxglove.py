@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -180,6 +181,50 @@ def _add_primitive(entity: SceneEntity, primitive: Primitive, rgba: tuple[float,
         shape.bottom_scale = shape.top_scale = 1.0
 
 
+def _cube_template() -> tuple[np.ndarray, dict[str, int]]:
+    """One `cubes` element of a SceneEntity, serialized by protobuf with every double set to a
+    marker value, and the byte offset of each double in it."""
+    entity = SceneEntity()
+    cube = entity.cubes.add()
+    fields = {"x": 1.5, "y": 2.5, "z": 3.5, "w": 4.5, "sx": 5.5, "sy": 6.5, "sz": 7.5,
+              "r": 8.5, "g": 9.5, "b": 10.5, "a": 11.5}
+    cube.pose.position.x, cube.pose.position.y, cube.pose.position.z = fields["x"], fields["y"], fields["z"]
+    cube.pose.orientation.w = fields["w"]
+    cube.size.x, cube.size.y, cube.size.z = fields["sx"], fields["sy"], fields["sz"]
+    cube.color.r, cube.color.g, cube.color.b, cube.color.a = fields["r"], fields["g"], fields["b"], fields["a"]
+    record = entity.SerializeToString()
+    offsets = {}
+    for name, value in fields.items():
+        marker = struct.pack("<d", value)
+        assert record.count(marker) == 1, f"cube template: marker of {name} is not unique"
+        offsets[name] = record.index(marker)
+    return np.frombuffer(record, dtype=np.uint8), offsets
+
+
+_CUBE_TEMPLATE, _CUBE_OFFSETS = _cube_template()
+
+
+def cube_field_bytes(centers_m: FloatArray, side_m: float, rgba: FloatArray) -> bytes:
+    """`cubes` elements of a SceneEntity, serialized: one axis-aligned cube of side `side_m` per
+    row of `centers_m` (N, 3), colored by `rgba` (N, 4).
+
+    Why not the protobuf library per cube: a map holds tens of thousands of voxels, and setting
+    their 14 fields one by one costs ~5 us each (85 ms for a map of 17k). Every double of a cube
+    is a fixed 8-byte field, so the serialization protobuf makes of one cube is the same bytes
+    for every cube but the doubles: this copies it N times and writes the doubles with numpy.
+    Tests decode the result with the official schema.
+    """
+    n = len(centers_m)
+    out = np.tile(_CUBE_TEMPLATE, (n, 1))
+    columns = {"x": centers_m[:, 0], "y": centers_m[:, 1], "z": centers_m[:, 2], "w": np.ones(n),
+               "sx": np.full(n, side_m), "sy": np.full(n, side_m), "sz": np.full(n, side_m),
+               "r": rgba[:, 0], "g": rgba[:, 1], "b": rgba[:, 2], "a": rgba[:, 3]}
+    for name, values in columns.items():
+        offset = _CUBE_OFFSETS[name]
+        out[:, offset:offset + 8] = np.ascontiguousarray(values, dtype="<f8").view(np.uint8).reshape(n, 8)
+    return out.tobytes()
+
+
 def _scene_update(stamp_s: float) -> SceneUpdate:
     """A SceneUpdate that first deletes every entity this topic drew before: each message is the whole picture."""
     update = SceneUpdate()
@@ -251,14 +296,11 @@ class FoxgloveConverter:
 
     def _occupancy(self, key: str, occupancy: Occupancy) -> list[Derived]:
         update = _scene_update(occupancy.stamp)
-        entity = _entity(update, occupancy.stamp, "occupied_voxels", occupancy.frame_id)
+        header = SceneEntity(timestamp=timestamp(occupancy.stamp), frame_id=occupancy.frame_id, id="occupied_voxels")
         centers = np.asarray(occupancy.occupied_centers_m, dtype=np.float64)
-        side = float(occupancy.resolution_m)
-        for center, rgba in zip(centers.tolist(), height_rgba(centers[:, 2], VOXEL_ALPHA).tolist(), strict=True):
-            cube = entity.cubes.add()
-            _set_pose(cube.pose, center)
-            cube.size.x = cube.size.y = cube.size.z = side
-            cube.color.r, cube.color.g, cube.color.b, cube.color.a = rgba
+        cubes = cube_field_bytes(centers, float(occupancy.resolution_m), height_rgba(centers[:, 2], VOXEL_ALPHA))
+        # Serialized messages concatenate into one whose repeated fields hold both parts' elements.
+        update.entities.append(SceneEntity.FromString(header.SerializeToString() + cubes))
         return [_protobuf(key + FOXGLOVE_SUFFIX, update)]
 
     def _clusters(self, key: str, clusters: Clusters) -> list[Derived]:

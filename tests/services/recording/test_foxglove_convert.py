@@ -8,6 +8,7 @@ import io
 import json
 
 import numpy as np
+from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.reader import make_reader
 
@@ -15,6 +16,7 @@ from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.wire.messages import ExecutorPath, JointState, RobotDescription
 from robonav.services.planner.description import robot_description
 from robonav.services.recording.files import RecordingWriter
+from robonav.services.recording.foxglove import cube_field_bytes
 
 ROOT = "robonav/fx"
 
@@ -64,3 +66,20 @@ def test_a_path_before_the_description_is_drawn_when_it_comes(panda: RobotModel)
     assert len(topics[f"{ROOT}/robot/joint_states/foxglove"]) == 1
     assert json.loads(topics[f"{ROOT}/robot/joint_states/json"][0])["names"] == list(panda.joint_names)
     assert attachments == ["panda.urdf"]
+
+
+def test_voxel_cubes_decode_with_the_official_schema() -> None:
+    """The cubes written by copying one serialized cube decode, field by field, to what a cube
+    built through the protobuf library holds (zeros included)."""
+    centers = np.array([[0.0, 0.0, 0.0], [-1.25, 2.5, 1e-9], [3.0, -0.0, 7.75]])
+    rgba = np.array([[0.0, 0.5, 1.0, 0.8], [1.0, 1.0, 1.0, 1.0], [0.25, 0.0, 0.0, 0.0]])
+    entity = SceneEntity.FromString(SceneEntity(id="v").SerializeToString() + cube_field_bytes(centers, 0.02, rgba))
+    assert entity.id == "v" and len(entity.cubes) == 3
+    for cube, center, color in zip(entity.cubes, centers, rgba, strict=True):
+        expected = SceneEntity().cubes.add()
+        expected.pose.position.x, expected.pose.position.y, expected.pose.position.z = center
+        expected.pose.orientation.w = 1.0
+        expected.size.x = expected.size.y = expected.size.z = 0.02
+        expected.color.r, expected.color.g, expected.color.b, expected.color.a = color
+        assert cube == expected
+    assert cube_field_bytes(np.zeros((0, 3)), 0.02, np.zeros((0, 4))) == b""
