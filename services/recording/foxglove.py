@@ -250,8 +250,6 @@ class FoxgloveConverter:
         self._robot: RobotDescription | None = None
         self._links: LinkFrames | None = None
         self._pending_path: tuple[str, ExecutorPath] | None = None
-        self.robot_error: str | None = None
-        """Why the robot description could not be used (its URDF does not build), if so."""
 
     def convert(self, key: str, payload: bytes) -> tuple[list[Derived], list[Attachment]]:
         cls = message_class_for_key(key)
@@ -262,13 +260,16 @@ class FoxgloveConverter:
         return self._handlers[cls](key, cls.from_wire(payload)), []
 
     def _robot_description(self, key: str, robot: RobotDescription) -> tuple[list[Derived], list[Attachment]]:
-        if self._robot is not None and robot.urdf == self._robot.urdf and robot.base_frame == self._robot.base_frame:
+        def what_counts(r: RobotDescription) -> tuple[Any, ...]:  # the stamp changes with every planner start
+            return r.urdf, r.base_frame, r.end_effector_link, sorted(r.fixed_joint_positions.items())
+
+        if self._robot is not None and what_counts(robot) == what_counts(self._robot):
             return [], []
         try:
             self._links = LinkFrames(robot.urdf, robot.base_frame, robot.fixed_joint_positions)
-            self._robot, self.robot_error = robot, None
-        except ValueError as exc:
-            self._robot, self._links, self.robot_error = None, None, str(exc)
+            self._robot = robot
+        except ValueError:  # counted by the writer with its reason; link poses wait for a good one
+            self._robot, self._links = None, None
             raise
         attachment = Attachment(f"{robot.name}.urdf", "application/xml", robot.urdf.encode())
         derived = [_json(key + URDF_SUFFIX, URDF_STRING_SCHEMA, {"data": robot.urdf})]
