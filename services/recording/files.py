@@ -146,6 +146,12 @@ class RecordingWriter:
             self._writer.add_attachment(create_time=source_time_ns, log_time=receive_time_ns, name=attachment.name,
                                         media_type=attachment.media_type, data=attachment.data)
 
+    def settle_conversions(self) -> None:
+        """Count as skipped what waited for a robot description that never came (call before the summary)."""
+        for key, reason in self._converter.undrawn().items():
+            self.stats[key].foxglove_skipped += 1
+            self.stats[key].foxglove_error = reason
+
     def _derived_channel(self, key: str, message: Derived) -> int:
         channel = self._derived_channels.get(message.topic)
         if channel is None:

@@ -19,9 +19,11 @@ protobuf encoding) or with a JSON Schema (`json` encoding, `jsonschema` schema e
 
 and the URDF of `robot/description` as an attachment. The `std_msgs/String` channel is what
 Foxglove's URDF layer reads a robot from (source "topic"); it then draws each link at the
-frame of the same name that the joint states' transforms carry. Link poses need the robot: joint states
-and a path that arrive before `robot/description` get no transforms or line (counted as
-skipped); the latest path is drawn as soon as the description comes.
+frame of the same name that the joint states' transforms carry.
+
+Link poses need the robot: joint states that arrive before `robot/description` get their JSON
+copy but no transforms; a path that arrives before it is drawn when it comes (and counted as
+skipped if it never does).
 """
 
 from __future__ import annotations
@@ -259,6 +261,12 @@ class FoxgloveConverter:
             return [], []
         return self._handlers[cls](key, cls.from_wire(payload)), []
 
+    def undrawn(self) -> dict[str, str]:
+        """Key -> why: messages held back for the robot description that never came."""
+        if self._pending_path is None:
+            return {}
+        return {self._pending_path[0]: "executor path without a robot description in the recording: not drawn"}
+
     def _robot_description(self, key: str, robot: RobotDescription) -> tuple[list[Derived], list[Attachment]]:
         def what_counts(r: RobotDescription) -> tuple[Any, ...]:  # the stamp changes with every planner start
             return r.urdf, r.base_frame, r.end_effector_link, sorted(r.fixed_joint_positions.items())
@@ -333,9 +341,9 @@ class FoxgloveConverter:
         return [_protobuf(key + FOXGLOVE_SUFFIX, update)]
 
     def _path(self, key: str, path: ExecutorPath) -> list[Derived]:
-        if self._links is None or self._robot is None:
+        if self._links is None or self._robot is None:  # drawn when the description comes (`undrawn` if never)
             self._pending_path = (key, path)
-            raise ValueError("executor path before the robot description: drawn when the description arrives")
+            return []
         self._pending_path = None
         points = self._links.link_positions(path.joint_names, path.path, self._robot.end_effector_link)
         update = _scene_update(path.stamp)

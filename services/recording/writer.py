@@ -170,6 +170,7 @@ def run(output: str, foxglove: bool, metadata: dict[str, str], stream: BinaryIO,
             checkpoint = counters_file.read() if counters_file is not None else {}
             writer.flush(merged_summary(writer, checkpoint, finished=False))
             next_flush = time.monotonic() + FLUSH_INTERVAL_S
+    writer.settle_conversions()
     if finished:
         summary = merged_summary(writer, counters)
     else:  # the recorder died: its last counters are all there is

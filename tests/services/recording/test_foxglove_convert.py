@@ -50,6 +50,19 @@ def test_bad_payloads_are_recorded_raw_and_counted(panda: RobotModel) -> None:
     assert attachments == []
 
 
+def test_a_path_without_any_description_is_counted_as_not_drawn(panda: RobotModel) -> None:
+    path = ExecutorPath(stamp=2.0, trajectory_id="t", joint_names=panda.joint_names,
+                        path=np.array([panda.home_position_rad, panda.home_position_rad + 0.1]))
+    buffer = io.BytesIO()
+    writer = RecordingWriter(buffer)
+    writer.write(f"{ROOT}/executor/path", path.to_wire(), receive_time_ns=1, source_time_ns=1)
+    writer.settle_conversions()
+    writer.finish()
+    stats = writer.stats[f"{ROOT}/executor/path"]
+    assert (stats.written, stats.foxglove_written, stats.foxglove_skipped) == (1, 0, 1)
+    assert "without a robot description" in (stats.foxglove_error or "")
+
+
 def test_a_path_before_the_description_is_drawn_when_it_comes(panda: RobotModel) -> None:
     path = ExecutorPath(stamp=2.0, trajectory_id="t", joint_names=panda.joint_names,
                         path=np.array([panda.home_position_rad, panda.home_position_rad + 0.1]))
@@ -58,7 +71,7 @@ def test_a_path_before_the_description_is_drawn_when_it_comes(panda: RobotModel)
                                           (f"{ROOT}/robot/joint_states", state.to_wire()),
                                           (f"{ROOT}/robot/description", robot_description(panda).to_wire()),
                                           (f"{ROOT}/robot/joint_states", state.to_wire())])
-    assert writer.stats[f"{ROOT}/executor/path"].foxglove_skipped == 1
+    assert writer.stats[f"{ROOT}/executor/path"].foxglove_skipped == 0
     (update,) = [SceneUpdate.FromString(d) for d in topics[f"{ROOT}/executor/path/foxglove"]]
     assert len(update.entities[0].lines[0].points) == 2
     # Joint states: a JSON copy always, link transforms once the robot is known.
