@@ -96,3 +96,19 @@ def test_voxel_cubes_decode_with_the_official_schema() -> None:
         expected.color.r, expected.color.g, expected.color.b, expected.color.a = color
         assert cube == expected
     assert cube_field_bytes(np.zeros((0, 3)), 0.02, np.zeros((0, 4))) == b""
+
+
+def test_no_foxglove_writes_the_raw_channels_only(panda: RobotModel) -> None:
+    state = JointState(stamp=2.0, names=panda.joint_names, position=panda.home_position_rad, velocity=np.zeros(7))
+    buffer = io.BytesIO()
+    writer = RecordingWriter(buffer, foxglove_clouds=False)
+    for i, (key, payload) in enumerate([(f"{ROOT}/robot/description", robot_description(panda).to_wire()),
+                                        (f"{ROOT}/robot/joint_states", state.to_wire())]):
+        writer.write(key, payload, receive_time_ns=i, source_time_ns=i)
+    writer.finish()
+    buffer.seek(0)
+    reader = make_reader(buffer)
+    summary = reader.get_summary()
+    assert summary is not None
+    assert {c.topic for c in summary.channels.values()} == {f"{ROOT}/robot/description", f"{ROOT}/robot/joint_states"}
+    assert list(reader.iter_attachments()) == []
