@@ -73,7 +73,7 @@ class KeyStats:
     foxglove_written: int = 0
     foxglove_skipped: int = 0
     """Messages recorded raw without their Foxglove copy: a payload that did not decode as the
-    key's message, a value no viewer draws (NaN), or robot poses before the robot description."""
+    key's message, a value no viewer draws (NaN), or a path whose robot description never came."""
     foxglove_error: str | None = None
     """Why the last one was skipped."""
     seq_gaps: int = 0

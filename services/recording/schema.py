@@ -4,7 +4,8 @@ Each recorded key expression gets one MCAP channel with message encoding `msgpac
 schema (encoding `jsonschema`) is derived from the message dataclass in
 `pipeline/messages.py` that travels on that key. Keys this package does not publish get a
 generic "msgpack map" schema. Camera clouds are also written as `foxglove.PointCloud`
-(protobuf schemas from `foxglove-schemas-protobuf`), which Foxglove and Rerun open directly.
+(protobuf schemas from `foxglove-schemas-protobuf`), which Foxglove and Rerun open directly;
+`foxglove.py` derives the other Foxglove channels with the descriptors `protobuf_schema` gives.
 """
 
 from __future__ import annotations
