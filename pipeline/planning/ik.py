@@ -46,7 +46,7 @@ from __future__ import annotations
 import enum
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pinocchio as pin
@@ -93,6 +93,8 @@ class IkResult:
         best_orientation_error_rad: Orientation error [rad] at that same iterate (0 for
             position-only goals).
         solve_time_s: Wall-clock time of the call [s].
+        rejected: (R, dof) the distinct converged configurations `is_valid` rejected, nearest to
+            `seed_q` first: what a GOAL_IN_COLLISION can show (which links collide where).
     """
 
     status: IkStatus
@@ -104,6 +106,7 @@ class IkResult:
     best_position_error_m: float
     best_orientation_error_rad: float
     solve_time_s: float
+    rejected: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
 
     @property
     def success(self) -> bool:
@@ -248,12 +251,14 @@ def solve_ik(
         else:
             rejected.append(q)
 
-    def done(status: IkStatus, detail: str, found: list[FloatArray]) -> IkResult:
+    def nearest_first(found: list[FloatArray]) -> FloatArray:
         if seed is not None:
             found = sorted(found, key=lambda s: float(np.linalg.norm(s - seed)))
-        stacked = np.array(found, dtype=np.float64).reshape(-1, robot.dof)
-        return IkResult(status, stacked, detail, iterations, attempts, len(rejected), best_position,
-                        0.0 if position_only else best_angle, time.perf_counter() - t0)
+        return np.array(found, dtype=np.float64).reshape(-1, robot.dof)
+
+    def done(status: IkStatus, detail: str, found: list[FloatArray]) -> IkResult:
+        return IkResult(status, nearest_first(found), detail, iterations, attempts, len(rejected), best_position,
+                        0.0 if position_only else best_angle, time.perf_counter() - t0, nearest_first(rejected))
 
     goal_kind = "position-only" if position_only else "pose"
     if solutions:

@@ -211,7 +211,8 @@ class MotionPlanner:
         pairs = self.world.collisions(q)
         if pairs:
             named = [f"{a}|{b}" for a, b in pairs]
-            return PlanOutcome(invalid, f"{which} is in collision: {', '.join(named)}", details={"pairs": named})
+            return PlanOutcome(invalid, f"{which} is in collision: {', '.join(named)}",
+                               details={"pairs": named, "which": which, "positions": q.tolist()})
         if not is_valid(q):
             return PlanOutcome(invalid, f"{which}: the end-effector is outside the workspace bounds",
                                details={"which": which, "workspace": True})
@@ -242,9 +243,12 @@ class MotionPlanner:
             return PlanOutcome(PlanStatus.GOAL_UNREACHABLE, f"no IK solution for {pose.link}: {result.detail}",
                                details=details)
         if result.status is IkStatus.GOAL_IN_COLLISION:
+            details |= {"rejected": result.rejected_invalid, "which": "goal"}
+            if len(result.rejected):  # where the nearest rejected solution collides, for a viewer to show
+                q = result.rejected[0]
+                details |= {"positions": q.tolist(), "pairs": [f"{a}|{b}" for a, b in self.world.collisions(q)]}
             return PlanOutcome(PlanStatus.GOAL_INVALID,
-                               f"every IK solution for {pose.link} is in collision: {result.detail}",
-                               details=details | {"rejected": result.rejected_invalid})
+                               f"every IK solution for {pose.link} is in collision: {result.detail}", details=details)
         return result.solutions
 
     def _near_anchor(self, q: FloatArray) -> bool:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import math
 import types
 import typing
@@ -117,8 +118,7 @@ class Message:
     @classmethod
     def _fields_from_dict(cls: type[M], obj: dict[str, Any], prefix: str = "") -> M:
         """Decode the fields of a map without `v`; `prefix` is the key path of a nested message."""
-        hints = get_type_hints(cls)
-        fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+        hints, fields = _hints_and_fields(cls)
         obj = _drop_ignorable(obj, set(fields), cls.__name__, prefix)
         unknown = sorted(str(k) for k in obj if k not in fields)
         if unknown:
@@ -156,6 +156,14 @@ class Message:
 
 
 IGNORABLE_KEY = "ignorable"
+
+
+@functools.cache
+def _hints_and_fields(cls: type) -> tuple[dict[str, Any], dict[str, dataclasses.Field[Any]]]:
+    """A message class's resolved type hints and fields by name, read once per class: resolving
+    the hints took half the time of decoding a small message (a joint state: 0.15 of 0.3 ms).
+    Callers must not change them."""
+    return get_type_hints(cls), {f.name: f for f in dataclasses.fields(cls)}
 
 
 def _drop_ignorable(obj: dict[str, Any], known: set[str], owner: str, prefix: str) -> dict[str, Any]:
@@ -272,7 +280,7 @@ def _decode_value(tp: Any, value: Any, *, key: str, owner: str) -> Any:
         value = _drop_ignorable(value, names, owner, f"{key}.")
         if set(value) - names or names - set(value):
             raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must have exactly the keys {sorted(names)}", {"key": key})
-        sub_hints = get_type_hints(tp)
+        sub_hints, _ = _hints_and_fields(tp)
         fields = {k: _decode_value(sub_hints[k], v, key=f"{key}.{k}", owner=owner) for k, v in value.items()}
         try:
             return tp(**fields)

@@ -7,7 +7,9 @@ Layout (the `mcap` library does the format; this module only decides what goes w
 - every message carries `log_time` = receive time and `publish_time` = source time (the
   publisher's Zenoh timestamp; the receive time when the sample has none), Unix ns;
 - camera clouds are also written on `<key>/foxglove` as `foxglove.PointCloud`, right after
-  the raw message, so zstd finds the shared point bytes in the same chunk;
+  the raw message, so zstd finds the shared point bytes in the same chunk; frame transforms,
+  scene updates and JSON copies of other keys likewise (`foxglove.py`), and the robot's URDF
+  as an attachment;
 - zstd-compressed chunks; a `robonav.recording` metadata record with what was recorded and,
   at the end, a `robonav.record_stats` one with the per-key counts.
 
@@ -32,6 +34,7 @@ from mcap.records import Channel, Chunk, Footer, Message, Metadata
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
+from robonav.services.recording.foxglove import Derived, FoxgloveConverter
 from robonav.services.recording.schema import (
     FOXGLOVE_SUFFIX,
     JSONSCHEMA_ENCODING,
@@ -69,7 +72,10 @@ class KeyStats:
     bytes: int = 0
     foxglove_written: int = 0
     foxglove_skipped: int = 0
-    """Clouds whose payload did not decode as a PointCloud: recorded raw, without the Foxglove copy."""
+    """Messages recorded raw without their Foxglove copy: a payload that did not decode as the
+    key's message, a value no viewer draws (NaN), or a path whose robot description never came."""
+    foxglove_error: str | None = None
+    """Why the last one was skipped."""
     seq_gaps: int = 0
     """Clouds missing between consecutive `seq` values: lost before they reached the recorder."""
     last_seq: int | None = None
@@ -90,6 +96,9 @@ class RecordingWriter:
         self._channels: dict[str, int] = {}
         self._foxglove_channels: dict[str, int] = {}
         self._foxglove_schema: int | None = None
+        self._derived_channels: dict[str, int] = {}
+        self._derived_schemas: dict[tuple[str, str], int] = {}
+        self._converter = FoxgloveConverter()
         self.stats: dict[str, KeyStats] = {}
         self._finished = False
 
@@ -105,6 +114,8 @@ class RecordingWriter:
         self._writer.add_message(channel, log_time=receive_time_ns, data=payload, publish_time=source_time_ns,
                                  sequence=stats.written)
         if not is_cloud_key(key):
+            if self._foxglove:
+                self._write_derived(key, payload, stats, receive_time_ns, source_time_ns)
             return
         try:
             foxglove, seq = foxglove_point_cloud(payload)
@@ -118,6 +129,40 @@ class RecordingWriter:
             self._writer.add_message(self._foxglove_channel(key), log_time=receive_time_ns, data=foxglove,
                                      publish_time=source_time_ns, sequence=stats.written)
             stats.foxglove_written += 1
+
+    def _write_derived(self, key: str, payload: bytes, stats: KeyStats, receive_time_ns: int,
+                       source_time_ns: int) -> None:
+        try:
+            derived, attachments = self._converter.convert(key, payload)
+        except Exception as exc:  # any error: a copy for viewers must never cost the recording its raw data
+            stats.foxglove_skipped += 1
+            stats.foxglove_error = f"{type(exc).__name__}: {exc}"
+            return
+        for message in derived:
+            self._writer.add_message(self._derived_channel(key, message), log_time=receive_time_ns, data=message.data,
+                                     publish_time=source_time_ns, sequence=stats.written)
+            stats.foxglove_written += 1
+        for attachment in attachments:
+            self._writer.add_attachment(create_time=source_time_ns, log_time=receive_time_ns, name=attachment.name,
+                                        media_type=attachment.media_type, data=attachment.data)
+
+    def settle_conversions(self) -> None:
+        """Count as skipped what waited for a robot description that never came (call before the summary)."""
+        for key, reason in self._converter.undrawn().items():
+            self.stats[key].foxglove_skipped += 1
+            self.stats[key].foxglove_error = reason
+
+    def _derived_channel(self, key: str, message: Derived) -> int:
+        channel = self._derived_channels.get(message.topic)
+        if channel is None:
+            schema_key = (message.schema_name, message.schema_encoding)
+            if schema_key not in self._derived_schemas:
+                self._derived_schemas[schema_key] = self._writer.register_schema(
+                    name=message.schema_name, encoding=message.schema_encoding, data=message.schema)
+            channel = self._derived_channels[message.topic] = self._writer.register_channel(
+                topic=message.topic, message_encoding=message.message_encoding,
+                schema_id=self._derived_schemas[schema_key], metadata={"source_key": key})
+        return channel
 
     def _register(self, key: str) -> int:
         name, schema = json_schema_for_key(key)

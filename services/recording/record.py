@@ -9,7 +9,7 @@ SIGINT/SIGTERM (or `--duration`) stops the subscriber, drains the queue and fini
 file, so Ctrl-C leaves a valid recording. A SIGKILL of this process leaves the writer to
 finish the file, counting the samples lost with the queue (`writer.py`). An existing output
 file is kept unless `--force`. Exit code 0: every received sample written; 1: samples were
-dropped; 2: bad config or output.
+dropped; 2: bad config or output, or no router to connect to.
 """
 
 from __future__ import annotations
@@ -203,7 +203,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--zenoh-config", metavar="FILE",
                         help="Zenoh JSON5 config (TLS, login, e.g. client-viewer.json5); overrides zenoh.config_file")
     parser.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
-    parser.add_argument("--no-foxglove", action="store_true", help="do not add foxglove.PointCloud copies of clouds")
+    parser.add_argument("--no-foxglove", action="store_true", help="write only the raw channels (no Foxglove point clouds, transforms, scene updates, JSON copies)")
     parser.add_argument("--max-buffer-mb", type=float, default=DEFAULT_MAX_BUFFER_MB,
                         help="memory for samples waiting to be written; beyond it samples are dropped and counted")
     parser.add_argument("--json", help="write the summary (counts per key) to this file")
@@ -237,7 +237,13 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         log.error("cannot write %s: %s", args.output, exc.strerror or exc)
         return 2
-    with open_session(cfg.zenoh) as session:
+    try:
+        session = open_session(cfg.zenoh)
+    except zenoh.ZError as exc:
+        Path(args.output).unlink(missing_ok=True)  # the empty file made above, not a recording
+        log.error("cannot reach the router at %s: %s", ", ".join(cfg.zenoh.connect), exc)
+        return 2
+    with session:
         recorder = Recorder(session, args.output, key_exprs, foxglove_clouds=not args.no_foxglove, metadata=metadata,
                             max_buffer_bytes=int(args.max_buffer_mb * 2**20))
         log.info("recording %s into %s", " ".join(key_exprs), args.output)

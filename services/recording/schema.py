@@ -4,7 +4,8 @@ Each recorded key expression gets one MCAP channel with message encoding `msgpac
 schema (encoding `jsonschema`) is derived from the message dataclass in
 `pipeline/messages.py` that travels on that key. Keys this package does not publish get a
 generic "msgpack map" schema. Camera clouds are also written as `foxglove.PointCloud`
-(protobuf schemas from `foxglove-schemas-protobuf`), which Foxglove and Rerun open directly.
+(protobuf schemas from `foxglove-schemas-protobuf`), which Foxglove and Rerun open directly;
+`foxglove.py` derives the other Foxglove channels with the descriptors `protobuf_schema` gives.
 """
 
 from __future__ import annotations
@@ -22,7 +23,18 @@ from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud as FoxglovePoint
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 
 from robonav.pipeline.wire.codec import Message
-from robonav.pipeline.wire.messages import ExecutorStatus, JointState, Occupancy, PointCloud, Setpoint
+from robonav.pipeline.wire.messages import (
+    Cameras,
+    Clusters,
+    ExecutorPath,
+    ExecutorStatus,
+    JointState,
+    Occupancy,
+    PlanningSceneState,
+    PointCloud,
+    RobotDescription,
+    Setpoint,
+)
 
 MSGPACK_ENCODING = "msgpack"
 JSONSCHEMA_ENCODING = "jsonschema"
@@ -36,6 +48,11 @@ _KEY_MESSAGES: tuple[tuple[str, type[Message]], ...] = (
     ("robonav/*/perception/occupancy", Occupancy),
     ("robonav/*/executor/setpoint", Setpoint),
     ("robonav/*/executor/status", ExecutorStatus),
+    ("robonav/*/executor/path", ExecutorPath),
+    ("robonav/*/perception/clusters", Clusters),
+    ("robonav/*/planner/scene_state", PlanningSceneState),
+    ("robonav/*/robot/description", RobotDescription),
+    ("robonav/*/cameras", Cameras),
 )
 _ARRAY_SCHEMA: dict[str, Any] = {
     "type": "object",
@@ -112,6 +129,12 @@ def _value_schema(tp: Any) -> dict[str, Any]:
 
 def foxglove_point_cloud_schema() -> tuple[str, bytes]:
     """(schema name, serialized FileDescriptorSet) of `foxglove.PointCloud` and its dependencies."""
+    return protobuf_schema(FoxglovePointCloud)
+
+
+def protobuf_schema(message_type: Any) -> tuple[str, bytes]:
+    """(full name, serialized FileDescriptorSet) of a protobuf message type and the files it
+    depends on: what MCAP's `protobuf` schema encoding holds."""
     descriptors = FileDescriptorSet()
     seen: set[str] = set()
 
@@ -122,8 +145,8 @@ def foxglove_point_cloud_schema() -> tuple[str, bytes]:
                 add(dependency)
         file_descriptor.CopyToProto(descriptors.file.add())
 
-    add(FoxglovePointCloud.DESCRIPTOR.file)
-    return FoxglovePointCloud.DESCRIPTOR.full_name, descriptors.SerializeToString()
+    add(message_type.DESCRIPTOR.file)
+    return message_type.DESCRIPTOR.full_name, descriptors.SerializeToString()
 
 
 def foxglove_point_cloud(payload: bytes) -> tuple[bytes, int]:

@@ -122,9 +122,12 @@ def merged_summary(writer: RecordingWriter, counters: dict[str, Any], *, finishe
             "received": received.get(key, 0), "dropped": dropped.get(key, 0),
             "written": stats.written if stats else 0, "bytes": stats.bytes if stats else 0,
             "foxglove_written": stats.foxglove_written if stats else 0,
+            "foxglove_skipped": stats.foxglove_skipped if stats else 0,
             "publisher_seq_gaps": stats.seq_gaps if stats else 0,
             "lost_at_recorder_exit": lost.get(key, 0),
         }
+        if stats is not None and stats.foxglove_error is not None:
+            per_key[key]["foxglove_error"] = stats.foxglove_error
     return {
         "received": sum(received.values()),
         "written": sum(v["written"] for v in per_key.values()),
@@ -167,6 +170,7 @@ def run(output: str, foxglove: bool, metadata: dict[str, str], stream: BinaryIO,
             checkpoint = counters_file.read() if counters_file is not None else {}
             writer.flush(merged_summary(writer, checkpoint, finished=False))
             next_flush = time.monotonic() + FLUSH_INTERVAL_S
+    writer.settle_conversions()
     if finished:
         summary = merged_summary(writer, counters)
     else:  # the recorder died: its last counters are all there is

@@ -1,7 +1,7 @@
 """`robonav view`: a live 3D view in the browser (viser) of what the pipeline sees, plans and does.
 
-Subscribes to joint states, camera clouds, the occupancy map, clusters, the executor's path and
-status; draws them on a viser page. Zenoh callbacks only keep the latest sample: a redraw loop
+Subscribes to joint states, camera clouds, the occupancy map, clusters, the planner's scene
+(objects, attached ones following the arm), the executor's path and status; draws them on a viser page. Zenoh callbacks only keep the latest sample: a redraw loop
 decodes and draws at its own rates, so a 30 Hz 640x480 camera is thinned (fewer frames, fewer
 points) before anything reaches the browser. `--snapshot out.png` renders the page once in
 headless Chromium and writes it as a PNG.
@@ -27,7 +27,7 @@ from robonav.pipeline.config import ConfigError, require
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.transforms import transform_points
 from robonav.pipeline.types import FloatArray
-from robonav.pipeline.wire.messages import ExecutorPath, PointCloud
+from robonav.pipeline.wire.messages import ExecutorPath, PlanningSceneState, PointCloud
 from robonav.services.client import RobonavClient
 from robonav.services.common import (
     add_logging_arguments,
@@ -95,6 +95,8 @@ class ViewStats:
     maps_drawn: int = 0
     paths_drawn: int = 0
     clusters_drawn: int = 0
+    scenes_drawn: int = 0
+    """Planner scenes (`planner/scene_state`) drawn."""
     robot_updates: int = 0
     errors: dict[str, int] = field(default_factory=dict)
 
@@ -143,6 +145,7 @@ class ViewNode:
         self._lock = threading.Lock()
         self._path: ExecutorPath | None = None
         self._clusters: tuple | None = None
+        self._planning_scene: PlanningSceneState | None = None
         # A wildcard over every camera: room for a few samples per camera so one fast camera
         # does not push another's only frame out before the loop drains the channel.
         self._cloud_sub = session.declare_subscriber(keys.all_camera_clouds,
@@ -150,6 +153,7 @@ class ViewNode:
         self._path_sub = declare_latched_subscriber(session, keys.executor_path, self._on_path)
         clusters_key = getattr(keys, "clusters", f"{keys.root}/perception/clusters")
         self._clusters_sub = session.declare_subscriber(clusters_key, self._on_clusters)
+        self._scene_sub = declare_latched_subscriber(session, keys.scene_state, self._on_planning_scene)
         self._pending_clouds: dict[str, zenoh.Sample] = {}
         self._next_cloud_s: dict[str, float] = {}
         self._next_map_s = 0.0
@@ -186,6 +190,15 @@ class ViewNode:
         with self._lock:
             self._path = path
 
+    def _on_planning_scene(self, sample: zenoh.Sample) -> None:
+        try:
+            state = PlanningSceneState.from_wire(sample.payload.to_bytes())
+        except Exception as exc:  # a bad sample is dropped, never raised into Zenoh
+            self._count_error("planning scene", exc)
+            return
+        with self._lock:
+            self._planning_scene = state
+
     def _on_clusters(self, sample: zenoh.Sample) -> None:
         from robonav.services.view.clusters import decode_clusters
 
@@ -199,7 +212,8 @@ class ViewNode:
             return
         for name, step in (("joint state", self._draw_robot), ("status", self._draw_status),
                            ("occupancy", lambda: self._draw_map(now_s)), ("path", self._draw_path),
-                           ("clusters", self._draw_clusters), ("cloud", lambda: self._draw_clouds(now_s))):
+                           ("clusters", self._draw_clusters), ("planning scene", self._draw_planning_scene),
+                           ("cloud", lambda: self._draw_clouds(now_s))):
             try:
                 step()
             except Exception as exc:  # one bad message must not stop the other layers
@@ -222,6 +236,7 @@ class ViewNode:
             return
         self._drawn["joint_positions"] = key
         self.layers.set_robot_joints(state.names, state.position.tolist())
+        self.layers.planning.follow(state.names, state.position.tolist())
         self.stats.robot_updates += 1
         if self.stats.robot_updates == 1:
             self.controls.move_gizmo_to_hand()
@@ -256,6 +271,14 @@ class ViewNode:
             assert clusters is not None
             self.layers.show_clusters(clusters)
             self.stats.clusters_drawn += 1
+
+    def _draw_planning_scene(self) -> None:
+        with self._lock:
+            state = self._planning_scene
+        if self._changed("planning_scene", state):
+            assert state is not None
+            self.layers.planning.show(state)
+            self.stats.scenes_drawn += 1
 
     def _draw_clouds(self, now_s: float) -> None:
         while (sample := self._cloud_sub.try_recv()) is not None:
@@ -318,7 +341,7 @@ class ViewNode:
         if getattr(self, "_stop", None) is not None:
             self._stop.set()
             self._thread.join(timeout=5.0)
-        for sub in (self._cloud_sub, self._path_sub, self._clusters_sub):
+        for sub in (self._cloud_sub, self._path_sub, self._clusters_sub, self._scene_sub):
             sub.undeclare()
         self.client.close()
         if self.gate is not None:

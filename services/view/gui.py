@@ -11,15 +11,18 @@ import numpy as np
 import viser
 
 from robonav.pipeline.types import FloatArray
+from robonav.pipeline.wire.joint_order import positions_by_name
 from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, ExecutorStatus, PlanResponse
 from robonav.services.client import QueryFailed, RobonavClient
+from robonav.services.view.planning_scene import collision_from_details
 from robonav.services.view.scene import LAYERS, SceneLayers, wxyz_of
 
 log = logging.getLogger("robonav.view")
 
 CloudColoring = Literal["height", "cluster"]
 LAYER_LABELS = {"robot": "Robot", "ghost": "Ghost at goal", "path": "Path", "cloud": "Cloud", "voxels": "Occupied voxels",
-                "clusters": "Clusters", "cameras": "Camera frustums"}
+                "clusters": "Clusters", "objects": "Planner objects", "cameras": "Camera frustums"}
+IN_COLLISION_CODES = ("START_IN_COLLISION", "GOAL_IN_COLLISION")
 PLAN_TIMEOUT_S = 30.0
 """Longest wait for the planner's reply to a GUI plan [s]."""
 
@@ -102,13 +105,29 @@ class ViewControls:
         reply = self.client.plan_to_pose(tuple(float(v) for v in self.gizmo.position), quat_xyzw,
                                          timeout_s=PLAN_TIMEOUT_S, request_id="view")
         if isinstance(reply, ErrorReply):
+            if reply.code in IN_COLLISION_CODES:
+                return self._show_collision(reply)
             return f"plan failed: `{reply.code}` {reply.message}"
         assert isinstance(reply, PlanResponse)
+        self.layers.planning.clear_collision()
         self._planned = (tuple(reply.joint_names), reply.path)
         self.layers.show_path(reply.joint_names, reply.path, executed=False)
         self.execute_button.disabled = False
         return (f"planned with {reply.planner_id}: {reply.waypoint_count} waypoints, "
                 f"{reply.path_length_rad:.2f} rad, {reply.planning_time_s * 1e3:.0f} ms")
+
+    def _show_collision(self, reply: ErrorReply) -> str:
+        """Mark what the planner says collides; the text names it too."""
+        robot = self.layers.robot
+        collision = collision_from_details(reply.details, robot.link_names, robot.dof)
+        state = self.client.joint_state
+        current = None if state is None else positions_by_name(state.names, state.position.tolist(), robot.joint_names)
+        self.layers.planning.show_collision(collision, None if current is None else np.asarray(current))
+        if collision.which == "goal" and collision.positions is not None:
+            self.layers.show_ghost(collision.positions)
+        named = [*collision.links, *collision.objects, *(["occupancy"] if collision.occupancy else [])]
+        where = f"; colliding (in red): {', '.join(named)}" if named else ""
+        return f"plan failed: `{reply.code}` {reply.message}{where}"
 
     def execute(self) -> str:
         if self._planned is None:

@@ -28,8 +28,9 @@ from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire.joint_order import positions_by_name
 from robonav.services.config import perceived_world_from_camera
 from robonav.services.view.clusters import ClusterBox
+from robonav.services.view.planning_scene import PlanningSceneLayer
 
-LAYERS: tuple[str, ...] = ("robot", "ghost", "path", "cloud", "voxels", "clusters", "cameras")
+LAYERS: tuple[str, ...] = ("robot", "ghost", "path", "cloud", "voxels", "clusters", "objects", "cameras")
 """Toggleable layers; each is the scene node `/<name>`."""
 
 PATH_RGB = (255, 0, 200)
@@ -172,6 +173,7 @@ class SceneLayers:
         self.clusters: tuple[ClusterBox, ...] = ()
         for camera in cameras:
             self._add_frustum(camera)
+        self.planning = PlanningSceneLayer(server, robot, self._lock)
 
     def _add_frustum(self, camera: CameraConfig) -> None:
         world_from_camera = perceived_world_from_camera(camera)
@@ -253,6 +255,12 @@ class SceneLayers:
             self._dense_path = dense
             self._path_names = tuple(joint_names)
             self.set_ghost_fraction(1.0)
+            self.roots["ghost"].visible = self._ghost_wanted
+
+    def show_ghost(self, positions_rad: FloatArray) -> None:
+        """Pose the ghost robot at a state (robot joint order), e.g. a goal that collides."""
+        with self._lock:
+            self.ghost_pose.set_joints(self.robot.joint_names, np.asarray(positions_rad, dtype=np.float64).tolist())
             self.roots["ghost"].visible = self._ghost_wanted
 
     def set_ghost_fraction(self, fraction: float) -> None:

@@ -129,6 +129,11 @@ def test_unreachable_pose_and_pose_inside_the_block(setup) -> None:
     inside[:3, 3] = BLOCK.position_m
     outcome = planner.plan(PlanProblem(start, pose_goal=PoseGoal("panda_link7", inside, orientation_tolerance_rad=None)))
     assert outcome.status is PlanStatus.GOAL_INVALID, outcome.detail
+    # Where the nearest rejected solution collides, for a viewer to show.
+    q = np.array(outcome.details["positions"])
+    assert outcome.details["which"] == "goal" and outcome.details["rejected"] >= 1
+    assert outcome.details["pairs"] == [f"{a}|{b}" for a, b in planner.world.collisions(q)]
+    assert any(pair.endswith(f"|{BLOCK.name}") for pair in outcome.details["pairs"]), outcome.details
 
 
 def test_goal_tolerance_replaces_a_goal_in_collision(setup) -> None:
@@ -142,7 +147,10 @@ def test_goal_tolerance_replaces_a_goal_in_collision(setup) -> None:
             touching = q
             break
     assert touching is not None
-    assert planner.plan(PlanProblem(start, touching)).status is PlanStatus.GOAL_INVALID
+    refused = planner.plan(PlanProblem(start, touching))
+    assert refused.status is PlanStatus.GOAL_INVALID
+    assert refused.details["which"] == "goal" and refused.details["positions"] == touching.tolist()
+    assert any(pair.endswith(f"|{BLOCK.name}") for pair in refused.details["pairs"]), refused.details
     outcome = planner.plan(PlanProblem(start, touching, goal_tolerance_rad=0.05, seed=4))
     assert outcome.status is PlanStatus.SUCCESS, outcome.detail
     assert np.max(np.abs(outcome.path[-1] - touching)) <= 0.05 + 1e-12

@@ -114,6 +114,7 @@ def test_error_codes_that_depend_on_world_state(planner: tuple[PlannerNode, zeno
     reply = client.plan(GOAL)
     assert isinstance(reply, ErrorReply) and reply.code == "START_IN_COLLISION"
     assert any(p.endswith("|occupancy") for p in reply.details["pairs"])
+    assert reply.details["which"] == "start" and len(reply.details["positions"]) == 7
 
     # No map for longer than occupancy_max_age_s: stale.
     time.sleep(1.6)

@@ -173,7 +173,8 @@ def test_file_layout_opens_in_foxglove(sessions: Callable[[], zenoh.Session], tm
         assert summary is not None
         assert {c.compression for c in summary.chunk_indexes} == {"zstd"}
         topics = {c.topic: (c.message_encoding, summary.schemas[c.schema_id]) for c in summary.channels.values()}
-        assert set(topics) == {CLOUD_KEY, JOINT_KEY, OTHER_KEY, CLOUD_KEY + "/foxglove"}
+        # Joint states get a JSON copy; their link transforms need a robot description, not sent here.
+        assert set(topics) == {CLOUD_KEY, JOINT_KEY, OTHER_KEY, CLOUD_KEY + "/foxglove", JOINT_KEY + "/json"}
         for key in (CLOUD_KEY, JOINT_KEY, OTHER_KEY):
             encoding, schema = topics[key]
             assert encoding == "msgpack" and schema.encoding == "jsonschema"
@@ -187,7 +188,7 @@ def test_file_layout_opens_in_foxglove(sessions: Callable[[], zenoh.Session], tm
         for _schema, channel, message in reader.iter_messages():
             # Receive time comes after the publisher's time (one clock on loopback).
             assert message.log_time >= message.publish_time - 1_000_000
-            if channel.topic.endswith("/foxglove"):
+            if channel.topic == CLOUD_KEY + "/foxglove":
                 foxglove.append(FoxglovePointCloud.FromString(message.data))
     assert len(foxglove) == len(clouds)
     for fox, cloud in zip(foxglove, clouds):

@@ -166,6 +166,15 @@ def test_record_keeps_an_existing_file_unless_forced(endpoint: str, tmp_path: Pa
     assert Recording(path).complete
 
 
+def test_record_without_a_router_fails_clearly_and_leaves_no_file(tmp_path: Path) -> None:
+    config = write_config(tmp_path, "rec.yaml", zenoh={"mode": "client", "connect": [f"tcp/127.0.0.1:{free_port()}"]})
+    path = tmp_path / "run.mcap"
+    done = subprocess.run([sys.executable, "-m", "robonav.services.cli", "record", "-o", str(path), "--config",
+                           str(config), "--duration", "0.5"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "cannot reach the router" in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr and not path.exists()
+
+
 def _writer_of(recorder_pid: int) -> int:
     """The writer process `robonav record` started (its child)."""
     for entry in Path("/proc").iterdir():

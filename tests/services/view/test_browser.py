@@ -24,7 +24,13 @@ pytest.importorskip("playwright", reason="the `view` extra (playwright) is not i
 from PIL import Image  # noqa: E402
 
 from robonav.pipeline.robot.model import RobotModel  # noqa: E402
-from robonav.pipeline.wire.messages import ExecutorPath, ExecutorStatus, JointState  # noqa: E402
+from robonav.pipeline.wire.messages import (  # noqa: E402
+    ExecutorPath,
+    ExecutorStatus,
+    JointState,
+    PlanningSceneState,
+    SceneObjectSpec,
+)
 from robonav.services.common import declare_latched_publisher, open_session  # noqa: E402
 from robonav.services.config import RobonavConfig, load_config  # noqa: E402
 from robonav.services.keys import Keys  # noqa: E402
@@ -62,6 +68,10 @@ class Scene:
         self._path_pub = declare_latched_publisher(self.session, keys.executor_path)
         self._path_pub.put(ExecutorPath(stamp=time.time(), trajectory_id="t1", joint_names=self.robot.joint_names,
                                         path=self.path, duration_s=4.0).to_wire())
+        # A planner object in front of the arm, clear of the path, latched as the planner publishes it.
+        self.box = SceneObjectSpec("crate", "box", (0.55, -0.45, 0.15), size_m=(0.2, 0.2, 0.2))
+        self._scene_pub = declare_latched_publisher(self.session, keys.scene_state)
+        self._scene_pub.put(PlanningSceneState(stamp=time.time(), revision=1, objects=(self.box,)).to_wire())
         self.session.put(keys.status, ExecutorStatus(stamp=time.time(), state="idle", trajectory_id="t1",
                                                      progress=1.0, last_result="succeeded").to_wire())
         self._stop = threading.Event()
@@ -91,6 +101,7 @@ class Scene:
         self._stop.set()
         self._thread.join()
         self._path_pub.undeclare()
+        self._scene_pub.undeclare()
         self.session.close()
         return self.stack.close()
 
@@ -168,6 +179,31 @@ def test_browser_draws_the_robot_and_the_path(scene: Scene) -> None:
     low, high = link_px.min(axis=0) - 80, link_px.max(axis=0) + 80
     inside = (xs >= low[0]) & (xs <= high[0]) & (ys >= low[1]) & (ys <= high[1])
     assert inside.mean() > 0.95
+
+
+def test_browser_draws_the_planner_objects(scene: Scene) -> None:
+    """Hiding the 'Planner objects' layer changes the pixels where the planner's box projects, and
+    little elsewhere."""
+    url = scene.wait_for_view()
+    camera = (f"initialCameraPosition={','.join(map(str, CAMERA_POSITION_M))}"
+              f"&initialCameraLookAt={','.join(map(str, CAMERA_LOOK_AT_M))}&initialCameraUp=0,0,1"
+              f"&initialCameraFov={CAMERA_FOV_RAD}")
+    with open_page(page_url(f"{url}?{camera}"), width=WIDTH, height=HEIGHT) as page:
+        canvas = page.locator("canvas").first
+        with_objects = rgb(stable_screenshot(page, canvas))
+        page.get_by_role("checkbox", name="Planner objects", exact=True).click()
+        without = rgb(stable_screenshot(page, canvas))
+    height, width, _ = with_objects.shape
+    changed = np.any(np.abs(with_objects - without) > 8, axis=2)
+    center = np.array(scene.box.position_m)
+    half = np.array(scene.box.size_m) / 2.0
+    corners = center + half * np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+    box_px = project(np.vstack([center, corners]), width, height)
+    assert near(changed, box_px[:1], radius=3).all(), "hiding the planner objects left the box's center unchanged"
+    ys, xs = np.nonzero(changed)
+    low, high = box_px.min(axis=0) - 10, box_px.max(axis=0) + 10
+    inside = (xs >= low[0]) & (xs <= high[0]) & (ys >= low[1]) & (ys <= high[1])
+    assert changed.sum() > 100 and inside.mean() > 0.95, (changed.sum(), inside.mean())
 
 
 def test_view_snapshot_fails_clearly_without_a_robot(scene: Scene, tmp_path: Path) -> None:
