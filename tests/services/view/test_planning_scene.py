@@ -143,7 +143,11 @@ def test_a_gui_plan_into_an_object_marks_the_links_and_the_object(client: Robona
     node = ViewNode(cfg, session, ViewOptions(port=0))
     node.start()
     ee = cfg.robot.end_effector_link
-    goal = ROBOT.frame_pose(GOALS[0], ee)
+    # The stack is shared: the arm may stand at any demo goal. Block the one farthest from it,
+    # so the refusal is the goal's and not the start's.
+    assert client.wait_for(lambda: client.joint_state is not None, 10.0)
+    now = client.joint_state.position
+    goal = ROBOT.frame_pose(max(GOALS, key=lambda q: float(np.abs(q - now).max())), ee)
     added = client.scene(SceneRequest(operation="add", objects=(
         SceneObjectSpec("view_block", "box", tuple(goal[:3, 3]), size_m=(0.12, 0.12, 0.12)),)))
     assert isinstance(added, SceneResponse), added
