@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 
 import zenoh
@@ -80,8 +81,8 @@ class RequestWorkers:
             answer_query(query, lambda q: self._handler(q, worker), self.name)
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Refuse new queries, answer the waiting ones BUSY, and wait up to `timeout_s` for the
-        running ones (worker threads are daemons: a plan that does not end in time is abandoned)."""
+        """Refuse new queries, answer the waiting ones BUSY, and wait up to `timeout_s` in all for
+        the running ones (worker threads are daemons: a plan that does not end in time is abandoned)."""
         self._closed.set()
         while True:
             try:
@@ -95,5 +96,6 @@ class RequestWorkers:
                 self._queue.put(None, timeout=timeout_s)
             except queue.Full:
                 break
+        deadline = time.monotonic() + timeout_s  # one budget for all: a close must end in time
         for thread in self._threads:
-            thread.join(timeout=timeout_s)
+            thread.join(timeout=max(0.0, deadline - time.monotonic()))

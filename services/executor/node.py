@@ -64,6 +64,11 @@ log = logging.getLogger("robonav.executor")
 SWITCH_INTERVAL_S = 5e-4
 """Python's thread switch interval in the executor's process [s]."""
 SUPERVISE_PERIOD_S = 0.005
+CLOSE_WAIT_S = 1.5
+"""At close, the longest wait for the path monitor, the request workers and the stream feeder each [s]."""
+CLOSE_BRAKE_S = 4.0
+"""At close, the longest wait for the stream to brake the arm to rest and end [s]."""
+CLOSE_BUDGET_S = 3 * CLOSE_WAIT_S + CLOSE_BRAKE_S
 """The service loop (watchdog, state changes, status) runs every this [s]; setpoints do not wait on it."""
 
 
@@ -291,17 +296,19 @@ class ExecutorNode(Node):
                 return
 
     def close(self) -> None:
+        """Stop within CLOSE_BUDGET_S, which `robonav up` waits for before it kills: a replan or an
+        execute still running by then is abandoned (their threads are daemons), never the brake."""
         if self.monitor is not None:
-            self.monitor.close(timeout_s=self.cfg.executor.replan_timeout_s + 1.0)
+            self.monitor.close(timeout_s=CLOSE_WAIT_S)
         for q in self._queryables:
             q.undeclare()
-        self._workers.close()
+        self._workers.close(timeout_s=CLOSE_WAIT_S)
         self._map_sub.undeclare()
         self.check.close()
         self._sub.undeclare()
         self._to_stream.put(None)
-        self._feeder.join(timeout=5.0)
-        self._stream.close()  # it brakes a moving arm to rest first
+        self._feeder.join(timeout=CLOSE_WAIT_S)
+        self._stream.close(timeout_s=CLOSE_BRAKE_S)  # it brakes a moving arm to rest first
         self._status_pub.undeclare()
         self._path_pub.undeclare()
         # Frozen objects are never collected: give them back, so this node's cycles are freed

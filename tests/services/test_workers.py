@@ -139,6 +139,26 @@ def test_closing_answers_the_waiting_queries_busy(bus: tuple[zenoh.Session, zeno
     queryable.undeclare()
 
 
+def test_closing_waits_once_for_all_running_handlers_not_once_each(bus: tuple[zenoh.Session, zenoh.Session]) -> None:
+    service, client = bus
+    release = threading.Event()
+    started = threading.Semaphore(0)
+    workers = RequestWorkers("stuck", lambda q, w: (started.release(), release.wait(30.0), _reply(q)),
+                             workers=3, queue_size=4)
+    queryable = service.declare_queryable(KEY, workers.callback)
+    wait_until_served(client, KEY)
+    askers = [threading.Thread(target=_ask, args=(client, KEY, 5.0), daemon=True) for _ in range(3)]
+    for asker in askers:
+        asker.start()
+    assert all(started.acquire(timeout=10.0) for _ in askers), "the handlers did not start"
+    began = time.monotonic()
+    workers.close(timeout_s=1.0)
+    # Three stuck handlers: one budget of 1 s in all (a budget per thread would take 3 s).
+    assert time.monotonic() - began < 2.5
+    release.set()
+    queryable.undeclare()
+
+
 def test_no_queue_is_not_allowed() -> None:
     with pytest.raises(ValueError, match="queue_size"):
         RequestWorkers("x", lambda q, w: None, workers=1, queue_size=0)
