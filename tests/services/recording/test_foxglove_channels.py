@@ -72,7 +72,8 @@ def _move(client: RobonavClient, goal: np.ndarray) -> None:
         if isinstance(execution, ErrorReply) and execution.code == "PATH_IN_COLLISION":
             continue  # a voxel came in after the plan: plan again
         assert isinstance(execution, ExecuteResponse), execution
-        assert client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + 20.0) == "succeeded"
+        result = client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + 20.0)
+        assert result == "succeeded", (result, client.status)
         return
     raise AssertionError("no plan to the goal survived the execute check three times")
 

@@ -15,7 +15,7 @@ import sys
 import threading
 import time
 from collections import defaultdict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import msgpack
@@ -27,60 +27,18 @@ from mcap.reader import make_reader
 
 from robonav.pipeline.camera import CameraIntrinsics
 from robonav.pipeline.wire.messages import JointState, PointCloud
-from robonav.services.common import open_session
-from robonav.services.config import ZenohConfig
 from robonav.services.recording import replay
 from robonav.services.recording.files import Recording, RecordingError, RecordingWriter
 from robonav.services.recording.record import Recorder
 from robonav.services.recording.replay import Replayer, ReplayOptions
 
+from ..conftest import write_config
+from .conftest import wait_for
 
-def _load_conftest_helpers():  # noqa: ANN202 - importlib mode: conftest is not importable by name
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("services_conftest", Path(__file__).resolve().parents[1] / "conftest.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-helpers = _load_conftest_helpers()
-free_port, write_config = helpers.free_port, helpers.write_config
 CELL = "rt"
 CLOUD_KEY = f"robonav/{CELL}/camera/cam0/cloud"
 JOINT_KEY = f"robonav/{CELL}/robot/joint_states"
 OTHER_KEY = f"robonav/{CELL}/custom/blob"
-
-
-@pytest.fixture
-def endpoint() -> Iterator[str]:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
-    yield endpoint
-    router.close()
-
-
-@pytest.fixture
-def sessions(endpoint: str) -> Iterator[Callable[[], zenoh.Session]]:
-    opened: list[zenoh.Session] = []
-
-    def new_session() -> zenoh.Session:
-        opened.append(open_session(ZenohConfig(mode="client", connect=(endpoint,))))
-        return opened[-1]
-
-    yield new_session
-    for s in opened:
-        s.close()
-
-
-def wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.01)
-    return condition()
 
 
 def traffic(seed: int = 0) -> list[tuple[str, bytes]]:

@@ -14,7 +14,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import msgpack
@@ -23,47 +23,16 @@ import pytest
 import zenoh
 
 from robonav.pipeline.wire.messages import ExecutorStatus, JointState, Occupancy
-from robonav.services.common import open_session
-from robonav.services.config import ZenohConfig
 from robonav.services.recording.files import Recording, RecordingError
 from robonav.services.recording.record import Recorder
 from robonav.services.recording.replay import Replayer, ReplayOptions, in_cell, is_robot_key
 from robonav.services.recording.writer import FLUSH_INTERVAL_S
 
 from ..conftest import free_port, write_config
+from .conftest import wait_for
 
 CELL = "rs"
 BLOB_KEY = f"robonav/{CELL}/custom/blob"
-
-
-@pytest.fixture
-def endpoint() -> Iterator[str]:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
-    yield endpoint
-    router.close()
-
-
-@pytest.fixture
-def sessions(endpoint: str) -> Iterator[Callable[[], zenoh.Session]]:
-    opened: list[zenoh.Session] = []
-
-    def new_session() -> zenoh.Session:
-        opened.append(open_session(ZenohConfig(mode="client", connect=(endpoint,))))
-        return opened[-1]
-
-    yield new_session
-    for s in opened:
-        s.close()
-
-
-def wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True
 
 
 def cell_traffic() -> list[tuple[str, bytes]]:
