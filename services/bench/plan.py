@@ -32,9 +32,7 @@ import numpy as np
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.evaluation.mbm import MbmProblem, MbmProblemSet, mbm_robot_config, parse_mbm
 from robonav.pipeline.evaluation.mesh_check import FINE_STEP_RAD, MeshCollisionChecker
-from robonav.pipeline.evaluation.surface_sampling import sample_object_surfaces
 from robonav.pipeline.perception.config import PerceptionConfig
-from robonav.pipeline.perception.maps.octree import OccupancyMap
 from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.planning.metrics import path_length_rad
 from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
@@ -42,6 +40,8 @@ from robonav.pipeline.planning.ompl_planners import seed_ompl_once
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
+from robonav.services.bench.plan_maps import CAMERA_FRAMES, CLOUD_SPACING_M, CameraSetup, camera_map, cloud_map
+from robonav.services.config import ConfigError, default_config_path, load_config
 
 BENCH_RANGE_RAD = 1.0
 """RRTConnect range for the benchmark: MPLib's MBM figures solve 99.4 % with it, 82.7 % with OMPL's default."""
@@ -50,15 +50,11 @@ BENCH_EDGE_RESOLUTION_RAD = 0.02
 BENCH_PATH_CHECK_RESOLUTION_RAD = FINE_STEP_RAD
 """The planner re-checks the path it returns as finely as the benchmark's re-check, so a good
 planner loses no paths to it."""
-CLOUD_SPACING_M = 0.005
-"""Spacing of the synthetic surface cloud for `--scene cloud` [m]."""
-CLOUD_ORIGIN_HEIGHT_M = 0.3
-"""The synthetic camera sits this far above the cloud's highest point [m]."""
 SUMMARY_KEYS = ("problems", "solved", "solved_pct", "median_ms", "p95_ms", "median_length", "invalid_paths",
                 "median_cpu_ms")
 PROGRESS_WIDTH = 30
 
-SceneKind = Literal["primitives", "cloud"]
+SceneKind = Literal["primitives", "cloud", "camera"]
 
 
 @dataclass(frozen=True)
@@ -110,10 +106,17 @@ def add_parser(kinds: Any) -> None:  # noqa: ANN401 - argparse's private subpars
     plan.add_argument("--limit", type=_positive_int, default=None, help="first N problems of each family")
     plan.add_argument("--families", default=None, help="comma-separated family names (default: all)")
     plan.add_argument("--json", type=Path, default=None, help="write the summary as JSON to this file")
-    plan.add_argument("--scene", choices=("primitives", "cloud"), default="primitives",
-                      help="plan against the exact primitives, or an occupancy map built from a sampled cloud")
+    plan.add_argument("--scene", choices=("primitives", "cloud", "camera"), default="primitives",
+                      help="plan against the exact primitives, an occupancy map built from a sampled cloud, or "
+                           "one built from the configured cameras' noisy depth images (the arm at the start)")
     plan.add_argument("--cloud-inflation", type=_non_negative_float, default=PerceptionConfig().inflation_m,
-                      help="--scene cloud: occupancy inflation [m] (default: the perception default)")
+                      help="--scene cloud/camera: occupancy inflation [m] (default: the perception default)")
+    plan.add_argument("--config", type=Path, default=None,
+                      help="--scene camera: robonav YAML config whose cameras, sim noise and perception are used "
+                           "(default: packaged)")
+    plan.add_argument("--surface-allowance", type=_non_negative_float, default=PlannerConfig().surface_allowance_rad,
+                      help="--scene cloud/camera: joint-space radius around the start and goal inside which the "
+                           "map's inflation is released to the seen surface [rad] (0: inflation everywhere)")
     plan.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
@@ -128,20 +131,30 @@ def main(args: argparse.Namespace) -> int:
     try:
         # OMPL takes one seed per process, before its first sampler (see seed_ompl_once).
         seed_ompl_once(args.seed)
+        perception = dataclasses.replace(PerceptionConfig(), inflation_m=args.cloud_inflation)
+        cameras = None
+        if args.scene == "camera":
+            cfg = load_config(args.config or default_config_path())
+            perception = dataclasses.replace(cfg.perception, inflation_m=args.cloud_inflation)
+            cameras = CameraSetup(cfg.cameras, dataclasses.replace(cfg.sim.noise, enabled=True))
         records = run_plan_benchmark(sets, planner_id=args.planner, time_limit_s=args.time_limit, seed=args.seed,
                                      padding_m=args.padding, scene=args.scene, progress=progress,
-                                     perception=dataclasses.replace(PerceptionConfig(), inflation_m=args.cloud_inflation))
-    except ValueError as exc:
+                                     surface_allowance_rad=args.surface_allowance, perception=perception,
+                                     cameras=cameras)
+    except (ValueError, ConfigError) as exc:
         print(f"robonav bench plan: {exc}", file=sys.stderr)
         return 2
     report = build_report(records, config={
         "problems_path": str(args.problems), "families": [s.family for s in sets], "limit": args.limit,
         "planner": args.planner, "time_limit_s": args.time_limit, "seed": args.seed, "padding_m": args.padding,
-        "scene": args.scene, "range_rad": BENCH_RANGE_RAD, "edge_resolution_rad": BENCH_EDGE_RESOLUTION_RAD,
+        "scene": args.scene, "surface_allowance_rad": args.surface_allowance, "range_rad": BENCH_RANGE_RAD, "edge_resolution_rad": BENCH_EDGE_RESOLUTION_RAD,
         "path_check_resolution_rad": BENCH_PATH_CHECK_RESOLUTION_RAD,
         "fine_check_step_rad": FINE_STEP_RAD, "fine_check_model": "link collision meshes (FCL BVH), unpadded",
         **({"cloud_spacing_m": CLOUD_SPACING_M, "occupancy_resolution_m": PerceptionConfig().resolution_m,
             "occupancy_inflation_m": args.cloud_inflation} if args.scene == "cloud" else {}),
+        **({"cameras": [c.camera_id for c in cameras.cameras], "camera_frames": CAMERA_FRAMES,
+            "occupancy_resolution_m": perception.resolution_m, "occupancy_inflation_m": args.cloud_inflation}
+           if cameras is not None else {}),
     })
     print(format_table(report))
     unsolved = [r for r in records if not r.solved]
@@ -207,6 +220,8 @@ def run_plan_benchmark(
     scene: SceneKind = "primitives",
     progress: TextIO | None = None,
     perception: PerceptionConfig | None = None,
+    surface_allowance_rad: float | None = None,
+    cameras: CameraSetup | None = None,
 ) -> list[ProblemRecord]:
     """Plan every problem, time each `plan` call and re-check every returned path on the meshes.
 
@@ -220,6 +235,8 @@ def run_plan_benchmark(
             map of their sampled surfaces. The re-check always uses the primitives.
         progress: Stream for the progress bar, or None.
         perception: Occupancy map settings for `scene='cloud'`; None takes the defaults.
+        surface_allowance_rad: The planner's `surface_allowance_rad`; None: its default.
+        cameras: The cameras and their noise for `scene='camera'` (required then).
 
     Returns:
         One record per problem, in family and problem order.
@@ -228,6 +245,8 @@ def run_plan_benchmark(
     planner_config = PlannerConfig(allowed_planning_time_s=time_limit_s, range_rad=BENCH_RANGE_RAD,
                                    edge_resolution_rad=BENCH_EDGE_RESOLUTION_RAD,
                                    path_check_resolution_rad=BENCH_PATH_CHECK_RESOLUTION_RAD, seed=seed)
+    if surface_allowance_rad is not None:
+        planner_config = dataclasses.replace(planner_config, surface_allowance_rad=surface_allowance_rad)
     robots: dict[tuple[Any, ...], RobotModel] = {}
     records: list[ProblemRecord] = []
     for problem_set in sets:
@@ -243,7 +262,7 @@ def run_plan_benchmark(
                 _draw_progress(progress, len(records), total, f"{problem_set.family} #{problem.index}")
             records.append(_run_one(problem_set.family, problem, robot, checker, planner_config,
                                     planner_id=planner_id, seed=seed, padding_m=padding_m, scene=scene,
-                                    perception=perception))
+                                    perception=perception, cameras=cameras))
     if progress is not None:
         _draw_progress(progress, len(records), total, "done")
         progress.write("\n")
@@ -253,11 +272,15 @@ def run_plan_benchmark(
 
 def _run_one(family: str, problem: MbmProblem, robot: RobotModel, checker: MeshCollisionChecker,
              planner_config: PlannerConfig, *, planner_id: str, seed: int, padding_m: float,
-             scene: SceneKind, perception: PerceptionConfig | None) -> ProblemRecord:
+             scene: SceneKind, perception: PerceptionConfig | None, cameras: CameraSetup | None) -> ProblemRecord:
     world = CollisionWorld(robot, padding_m=padding_m)
     if scene == "cloud":
-        binary, resolution_m = occupancy_of_objects(problem.obstacles, seed=seed + problem.index, config=perception)
-        world.set_octree(binary, resolution_m)
+        cloud_map(problem.obstacles, seed=seed + problem.index, config=perception).apply(world)
+    elif scene == "camera":
+        if cameras is None:
+            raise ValueError("scene 'camera' needs the cameras")
+        camera_map(problem.obstacles, robot, cameras.cameras, cameras.noise, problem.start, seed=seed + problem.index,
+                   config=perception).apply(world)
     else:
         world.set_objects(problem.obstacles)
     planner = MotionPlanner(robot, world, planner_config)
@@ -282,30 +305,10 @@ def _run_one(family: str, problem: MbmProblem, robot: RobotModel, checker: MeshC
 
 def occupancy_of_objects(objects: Sequence[SceneObject], *, seed: int,
                          config: PerceptionConfig | None = None) -> tuple[bytes, float]:
-    """The planning octree (inflated, octomap binary) of the objects' sampled surfaces.
-
-    The surfaces are sampled every `CLOUD_SPACING_M` and inserted in one scan from a point
-    above the scene, as a camera that sees every side would; one hit marks a voxel occupied.
-
-    Returns:
-        The octomap binary and its resolution [m].
-
-    Raises:
-        ValueError: some surface point lies beyond the map's `max_range_m` from the origin
-            (octomap would only clear along such rays, never mark their ends).
-    """
-    cfg = config if config is not None else PerceptionConfig()
-    points = sample_object_surfaces(objects, spacing_m=CLOUD_SPACING_M, rng=np.random.default_rng(seed))
-    occupancy = OccupancyMap(cfg)
-    if points.shape[0]:
-        low, high = points.min(axis=0), points.max(axis=0)
-        origin = np.array([0.5 * (low[0] + high[0]), 0.5 * (low[1] + high[1]), high[2] + CLOUD_ORIGIN_HEIGHT_M])
-        farthest = float(np.max(np.linalg.norm(points - origin, axis=1)))
-        if farthest > cfg.max_range_m:
-            raise ValueError(f"scene cloud reaches {farthest:.2f} m from the synthetic camera, beyond "
-                             f"perception max_range_m {cfg.max_range_m}")
-        occupancy.insert(points, origin)
-    return occupancy.planning_binary(), occupancy.resolution_m
+    """The planning octree (inflated, octomap binary) of the objects' sampled surfaces and its
+    resolution [m] (`plan_maps.cloud_map`)."""
+    planning_map = cloud_map(objects, seed=seed, config=config)
+    return planning_map.octomap_binary, planning_map.resolution_m
 
 
 def summarize(records: Sequence[ProblemRecord]) -> dict[str, Any]:
