@@ -51,7 +51,7 @@ BENCH_PATH_CHECK_RESOLUTION_RAD = FINE_STEP_RAD
 """The planner re-checks the path it returns as finely as the benchmark's re-check, so a good
 planner loses no paths to it."""
 SUMMARY_KEYS = ("problems", "solved", "solved_pct", "median_ms", "p95_ms", "median_length", "invalid_paths",
-                "median_cpu_ms")
+                "median_cpu_ms", "solved_by_search")
 PROGRESS_WIDTH = 30
 
 SceneKind = Literal["primitives", "cloud", "camera"]
@@ -84,6 +84,9 @@ class ProblemRecord:
     length_rad: float | None
     detail: str
     cpu_ms: float | None = None
+    search: str = ""
+    """Which search found the path (`PlanOutcome.search`): on a map, "surface" means no path
+    that keeps the map's clearance was found in time."""
 
     @property
     def solved(self) -> bool:
@@ -157,11 +160,14 @@ def main(args: argparse.Namespace) -> int:
            if cameras is not None else {}),
     })
     print(format_table(report))
+    by_search = report["overall"]["solved_by_search"]
+    if set(by_search) - {"", "sphere_first", "exact"}:
+        print("solved by search: " + ", ".join(f"{mode or 'none'} {count}" for mode, count in by_search.items()))
     unsolved = [r for r in records if not r.solved]
     if unsolved:
         print("\nunsolved:")
         for r in unsolved:
-            reason = "path failed the mesh re-check" if r.returned_path else r.status
+            reason = f"path failed the mesh re-check ({r.search} search)" if r.returned_path else r.status
             print(f"  {r.family} #{r.index}: {reason} ({r.wall_ms:.0f} ms): {r.detail}")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -300,7 +306,8 @@ def _run_one(family: str, problem: MbmProblem, robot: RobotModel, checker: MeshC
     reached = goals[int(np.argmin(np.max(np.abs(goals - outcome.path[-1]), axis=1)))]
     check = checker.check_path(outcome.path, start_rad=problem.start, goal_rad=reached)
     return ProblemRecord(family, problem.index, status, wall_ms, True, check.valid,
-                         path_length_rad(outcome.path), outcome.detail if check.valid else check.detail, cpu_ms)
+                         path_length_rad(outcome.path), outcome.detail if check.valid else check.detail, cpu_ms,
+                         outcome.search)
 
 
 def occupancy_of_objects(objects: Sequence[SceneObject], *, seed: int,
@@ -332,6 +339,8 @@ def summarize(records: Sequence[ProblemRecord]) -> dict[str, Any]:
         "median_length": _rounded(float(np.median(lengths)), 4) if lengths else None,
         "invalid_paths": sum(1 for r in records if r.returned_path and not r.path_valid),
         "median_cpu_ms": _rounded(float(np.median(cpu))) if cpu and len(cpu) == n else None,
+        "solved_by_search": {mode: sum(1 for r in solved if r.search == mode)
+                             for mode in sorted({r.search for r in solved})},
     }
 
 
