@@ -283,10 +283,10 @@ class SphereBroadPhase:
         # Built once per world change (never per call): the kernels read this one object.
         if not hasattr(self, "_att_lanes") or not hasattr(self, "_has_grid") or not hasattr(self, "_obj_kind"):
             return
-        # Tier 0 (no clearance) checks the surface cells when there are some; the others the voxels.
-        worlds = {c: self._new_lane_world(c, None) for c in set(self._clearances[1:])}
-        self._lane_worlds = [self._new_lane_world(self._clearances[0], self._fine),
-                             *(worlds[c] for c in self._clearances[1:])]
+        # Every tier keeps its clearance from the surface cells when there are some (the seen
+        # points, not the voxels that quantise them), else from the voxels.
+        worlds = {c: self._new_lane_world(c, self._fine) for c in set(self._clearances)}
+        self._lane_worlds = [worlds[c] for c in self._clearances]
         self._lane_world = self._lane_worlds[-1]
         n_links = self._link_start.shape[0] - 1
         self._pair_outputs = (np.zeros((n_links, self._obj_kind.shape[0]), dtype=np.bool_),
