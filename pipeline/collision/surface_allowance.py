@@ -1,27 +1,28 @@
 """The map as a planning world: a clearance that protects the path, released near the query's ends.
 
 A map given with the voxels the sensors saw and the inflation it was published with
-(`CollisionWorld.set_octree(..., seen_voxels_m, clearance_m=...)`) is checked in two ways:
+(`CollisionWorld.set_octree(..., seen_voxels_m, clearance_m=...)`), and optionally the seen
+points (`surface_m`), is checked against its *surface*: the cells of a grid nested in the
+voxels that hold seen points, or the seen voxels themselves without points.
 
-- Everywhere: the padded links must keep `clearance_m` off the seen voxels. The sphere broad
-  phase checks exactly that (spheres grown by the clearance against the seen cubes); the states
-  it flags go to FCL against the inflated octree, which holds every point within the
-  inflation of a seen cube. Either test alone keeps the padded links `clearance_m` off what
-  was seen, so a state one of them clears is safe by the same margin.
+- Away from the anchors the padded links must keep `clearance_m` off the surface. The sphere
+  broad phase checks exactly that (spheres grown by the clearance against the surface cells);
+  the states it flags go to FCL against the inflated octree, which holds every point within
+  the inflation of a seen voxel. Either test alone keeps the padded links `clearance_m` off
+  what was seen, so a state one of them clears is safe by that margin.
 - Toward an anchor, i.e. the start or a goal of the running query (`anchored`), the clearance
   shrinks with the joint-space (Euclidean) distance d to the nearest anchor: it is
   clearance_m * floor(TIERS * d / radius_rad) / TIERS, the full clearance from `radius_rad` on.
-  What is checked is the surface: the seen points on a finer grid (`surface_m`, the cells
-  holding them), or the seen voxels when the map has no points. Within radius_rad / TIERS of
-  an anchor no clearance is left: the padded links must only keep off the surface. A goal a
-  centimetre from a shelf is what a grasp looks like; forbidding it in the name of sensor noise
-  forbids the task. GOAL_IN_COLLISION then means the goal's padded links touch what was seen.
-  The spheres decide the shrunk clearances; a state they flag goes to FCL against the inflated
-  octree (the full clearance), or within the innermost tier against an octree of the surface.
+  Within radius_rad / TIERS of an anchor no clearance is left: the padded links must only keep
+  off the surface. A goal a centimetre from a shelf is what a grasp looks like; forbidding it
+  in the name of sensor noise forbids the task. GOAL_IN_COLLISION then means the goal's padded
+  links touch what was seen. The spheres decide the shrunk clearances; a state they flag goes
+  to FCL against the inflated octree, or within the innermost tier against an octree of the
+  surface.
 
 The allowance is what MoveIt users build by hand with `padding` and `touch_links`; here it is
-explicit, bounded in joint space and documented in docs/architecture.md (the safety argument).
-Without anchors, or without a clearance, nothing changes.
+explicit, bounded in joint space and argued in docs/architecture.md (unseen space is not
+covered). Without anchors, or without a clearance, nothing changes.
 """
 
 from __future__ import annotations
@@ -120,8 +121,12 @@ class SurfaceAllowance:
         the surface); -1, the full clearance (far from every anchor, or no allowance)."""
         if self._surface_octree is None or not self._anchors.shape[0] or self._anchor_radius_sq <= 0:
             return -1
-        offsets = self._anchors - q
-        return _tier(float(np.min(np.einsum("ij,ij->i", offsets, offsets))), self._anchor_radius_sq)
+        # A loop of dot products over the few anchors: a third of one vectorised norm and min.
+        nearest_sq = math.inf
+        for anchor in self._anchors:
+            offset = anchor - q
+            nearest_sq = min(nearest_sq, float(offset.dot(offset)))
+        return _tier(nearest_sq, self._anchor_radius_sq)
 
     def _map_aware_check(self: CollisionWorld, q: FloatArray, *, first_only: bool, padded: bool = True) -> list[tuple[str, str]]:
         """`_check` after the broad phase, with the map's near-anchor allowance where it holds."""
@@ -136,8 +141,10 @@ class SurfaceAllowance:
         distance to a fixed anchor is convex along a segment, so it peaks at an end."""
         if self._surface_octree is None or not self._anchors.shape[0] or self._anchor_radius_sq <= 0:
             return -1
-        to_a, to_b = self._anchors - q_a, self._anchors - q_b
-        reach_sq = float(np.min(np.maximum(np.einsum("ij,ij->i", to_a, to_a), np.einsum("ij,ij->i", to_b, to_b))))
+        reach_sq = math.inf
+        for anchor in self._anchors:
+            to_a, to_b = anchor - q_a, anchor - q_b
+            reach_sq = min(reach_sq, max(float(to_a.dot(to_a)), float(to_b.dot(to_b))))
         return _tier(reach_sq, self._anchor_radius_sq)
 
     def touches_cubes(self: CollisionWorld, q: FloatArray, centers_m: FloatArray, side_m: float) -> bool:
