@@ -21,6 +21,7 @@ import dataclasses
 import json
 import math
 import sys
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -41,6 +42,7 @@ from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.services.bench.plan_maps import CAMERA_FRAMES, CLOUD_SPACING_M, CameraSetup, camera_map, cloud_map
+from robonav.services.campaign.run import EXTRA_CAMERAS_NAME, campaign_config
 from robonav.services.config import ConfigError, default_config_path, load_config
 
 BENCH_RANGE_RAD = 1.0
@@ -117,6 +119,9 @@ def add_parser(kinds: Any) -> None:  # noqa: ANN401 - argparse's private subpars
     plan.add_argument("--config", type=Path, default=None,
                       help="--scene camera: robonav YAML config whose cameras, sim noise and perception are used "
                            "(default: packaged)")
+    plan.add_argument("--extra-cameras", default=str(default_config_path().with_name(EXTRA_CAMERAS_NAME)),
+                      help="--scene camera: a YAML file whose `cameras` join the config's, as `robonav campaign` "
+                           "adds them (default: the campaign's; 'none': the config's cameras alone)")
     plan.add_argument("--surface-allowance", type=_non_negative_float, default=PlannerConfig().surface_allowance_rad,
                       help="--scene cloud/camera: joint-space radius around the start and goal inside which the "
                            "map's inflation is released to the seen surface [rad] (0: inflation everywhere)")
@@ -138,6 +143,10 @@ def main(args: argparse.Namespace) -> int:
         cameras = None
         if args.scene == "camera":
             cfg = load_config(args.config or default_config_path())
+            if args.extra_cameras != "none":
+                with tempfile.TemporaryDirectory() as tmp:
+                    cfg = load_config(campaign_config(args.config or default_config_path(), Path(tmp), noise=True,
+                                                      seed=args.seed, extra_cameras=Path(args.extra_cameras)))
             perception = dataclasses.replace(cfg.perception, inflation_m=args.cloud_inflation)
             cameras = CameraSetup(cfg.cameras, dataclasses.replace(cfg.sim.noise, enabled=True))
         records = run_plan_benchmark(sets, planner_id=args.planner, time_limit_s=args.time_limit, seed=args.seed,
@@ -156,6 +165,7 @@ def main(args: argparse.Namespace) -> int:
         **({"cloud_spacing_m": CLOUD_SPACING_M, "occupancy_resolution_m": PerceptionConfig().resolution_m,
             "occupancy_inflation_m": args.cloud_inflation} if args.scene == "cloud" else {}),
         **({"cameras": [c.camera_id for c in cameras.cameras], "camera_frames": CAMERA_FRAMES,
+            "extra_cameras": args.extra_cameras,
             "occupancy_resolution_m": perception.resolution_m, "occupancy_inflation_m": args.cloud_inflation}
            if cameras is not None else {}),
     })

@@ -22,7 +22,7 @@ from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.evaluation.surface_sampling import sample_object_surfaces
 from robonav.pipeline.perception.config import PerceptionConfig
-from robonav.pipeline.perception.depth import points_from_depth
+from robonav.pipeline.perception.depth import points_from_depth, remove_depth_edges
 from robonav.pipeline.perception.maps.factory import make_occupancy_map
 from robonav.pipeline.perception.maps.octree import OccupancyMap
 from robonav.pipeline.perception.maps.protocol import CameraFrame
@@ -137,7 +137,11 @@ def camera_map(objects: Sequence[SceneObject], robot: RobotModel, cameras: Seque
                 depth, _ = apply_depth_noise(frame.depth_m, frame.segmentation, frame.intrinsics, noise, rng)
                 occupancy.integrate(CameraFrame(frame.intrinsics, pose, links, depth_m=depth),
                                     self_filter=self_filter, clear_filter=clear_filter)
-                points = points_from_depth(depth, frame.intrinsics, max_depth_m=camera.far_m).astype(np.float64)
+                # The surface is what the map kept: flying pixels go as perception drops them.
+                clean = depth.copy()
+                if cfg.depth_edge_jump_m > 0:
+                    remove_depth_edges(clean, frame.intrinsics.fx, min_jump_m=cfg.depth_edge_jump_m)
+                points = points_from_depth(clean, frame.intrinsics, max_depth_m=camera.far_m).astype(np.float64)
                 points = points @ pose[:3, :3].T + pose[:3, 3]
                 surface.append(points[self_filter.outside_mask(points, links)])
     seen = np.asarray(occupancy.occupied_centers_m(), dtype=np.float64).reshape(-1, 3)
