@@ -311,6 +311,8 @@ class MotionPlanner:
         """
         t0 = time.perf_counter()
         share = self.config.sphere_first_share
+        if self.world.has_surface_allowance and self.config.release_map_clearance and share > 0:
+            share = self.config.map_clearance_share
         # Not against a bare octree (on MBM clouds without inflation it solved no more than the
         # exact search); a map with its seen voxels and clearance is a sphere world like primitives.
         if (share > 0 and self.world.spheres_usable
