@@ -62,6 +62,20 @@ def octree_object(octomap_binary: bytes, resolution_m: float) -> fcl.CollisionOb
     return fcl.CollisionObject(fcl.OcTree(resolution_m, np.frombuffer(body, dtype=np.int8).tolist()), fcl.Transform())
 
 
+def octree_of_centers(centers_m: FloatArray, resolution_m: float) -> fcl.CollisionObject | None:
+    """An FCL octree whose occupied leaves are the cells of side `resolution_m` holding `centers_m`
+    (N, 3) [m], on octomap's grid; None without centers."""
+    import octomap
+
+    centers = np.asarray(centers_m, dtype=np.float64).reshape(-1, 3)
+    if centers.shape[0] == 0:
+        return None
+    tree = octomap.OcTree(resolution_m)
+    tree.updateNodes(centers, True, lazy_eval=True)
+    tree.updateInnerOccupancy()
+    return octree_object(tree.writeBinary(), resolution_m)
+
+
 def convex_shape(vertices: FloatArray, triangles: IntArray) -> fcl.Convex:
     faces = np.hstack([np.full((len(triangles), 1), 3, dtype=np.int64), triangles]).ravel()
     return fcl.Convex(np.ascontiguousarray(vertices, dtype=np.float64), len(triangles), faces)

@@ -63,7 +63,16 @@ class SphereFirstChecks:
         q = self._robot.validate_q(q)
         if not self._broad_phase.state_suspect(q):
             return True
-        return bool(exact(q)) and not self._check(q, first_only=True)
+        return self._suspect_free(q, exact, -1)
+
+    def _suspect_free(self: CollisionWorld, q: FloatArray, exact: StateValidFn, flagged_tier: int) -> bool:
+        """A state the broad phase flagged at clearance tier `flagged_tier`: free by the spheres
+        of its own tier, where the map's clearance shrinks toward an anchor, or else, where
+        `exact`, by FCL."""
+        tier = self.clearance_tier(q)
+        if tier != flagged_tier and tier >= 0 and not self._broad_phase.state_suspect(q, tier=tier):
+            return True
+        return bool(exact(q)) and not self._check(q, first_only=True, tier=tier)
 
     def motion_free_by_spheres(self: CollisionWorld, q_a: FloatArray, q_b: FloatArray, resolution_rad: float,
                                exact: StateValidFn) -> bool:
@@ -78,15 +87,17 @@ class SphereFirstChecks:
         """The edge's broad-phase suspects, in `motion_valid` order, are each either asked of
         FCL (where `exact`) and free, or none exist. The first suspect is tried alone first
         because a blocked edge's first suspect usually is a collision."""
-        first, steps = self._broad_phase.edge_suspects(a, b, resolution_rad, first_only=True)
+        # The whole edge at the clearance of its farthest state from the anchors (the strictest).
+        tier = self.edge_tier(a, b)
+        first, steps = self._broad_phase.edge_suspects(a, b, resolution_rad, first_only=True, tier=tier)
         if first.size == 0:
             return True
         q = a + (b - a) * (first[0] / steps)
-        if not exact(q) or self._check(q, first_only=True):
+        if not self._suspect_free(q, exact, tier):
             return False
-        suspects, _ = self._broad_phase.edge_suspects(a, b, resolution_rad)
+        suspects, _ = self._broad_phase.edge_suspects(a, b, resolution_rad, tier=tier)
         for k in suspects[1:]:
             q = a + (b - a) * (k / steps)
-            if not exact(q) or self._check(q, first_only=True):
+            if not self._suspect_free(q, exact, tier):
                 return False
         return True

@@ -35,6 +35,7 @@ from robonav.pipeline.collision.fcl_shapes import (
 )
 from robonav.pipeline.collision.sphere_first import SphereFirstChecks
 from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
+from robonav.pipeline.collision.surface_allowance import SurfaceAllowance
 from robonav.pipeline.robot.link_geometry import grow_hull
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
@@ -44,11 +45,12 @@ OCCUPANCY = "occupancy"
 """Name reported for contacts with the occupancy octree."""
 
 
-class CollisionWorld(ClearanceQueries, SphereFirstChecks):
+class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance):
     """A robot model plus the obstacles it must avoid, all in the robot base (world) frame.
 
     Not thread-safe: FCL objects are re-posed on every query. The distance queries are in
-    `clearance.py`, the sphere-first checks in `sphere_first.py` (both mix into this class).
+    `clearance.py`, the sphere-first checks in `sphere_first.py`, the map's clearance and its
+    allowance near a query's start and goals in `surface_allowance.py` (all mix into this class).
     """
 
     def __init__(self, robot: RobotModel, padding_m: float | None = None, *, broad_phase: bool = True) -> None:
@@ -102,6 +104,9 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
         self._octree: fcl.CollisionObject | None = None
         self._seen_voxels_m: FloatArray | None = None
         self._octree_resolution_m = 0.0
+        self._anchors = np.zeros((0, robot.dof))
+        self._anchor_radius_sq = 0.0
+        self._reset_allowance()
         self._object_names: list[str] = []
         self._object_fcl: list[fcl.CollisionObject] = []
         self._object_center = np.zeros((0, 3))
@@ -148,7 +153,8 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
         return tuple(self._object_names)
 
     def set_octree(self, octomap_binary: bytes, resolution_m: float,
-                   seen_voxels_m: npt.ArrayLike | None = None) -> None:
+                   seen_voxels_m: npt.ArrayLike | None = None, *, clearance_m: float | None = None,
+                   surface_m: npt.ArrayLike | None = None, surface_resolution_m: float | None = None) -> None:
         """Replace the occupancy map with an octree in the world frame.
 
         Args:
@@ -156,6 +162,13 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
             resolution_m: Leaf size [m]; must match the `res` line of the header.
             seen_voxels_m: (N, 3) centers of the voxels the sensors saw, when the octree is
                 those grown by an inflation (`Occupancy.occupied_centers_m`) [m]; None: unknown.
+            clearance_m: The inflation the octree was grown by [m]. With `seen_voxels_m`, the
+                broad phase keeps the padded links this far off the seen voxels, and near the
+                anchors of a query the map's clearance is released (`surface_allowance.py`).
+                None: the octree is the map, as it is.
+            surface_m: (M, 3) seen points (or cells of a grid finer than the map's) the links
+                must keep off near the anchors [m]; None: the seen voxels. Needs `clearance_m`.
+            surface_resolution_m: Cell size of `surface_m` (<= `resolution_m`) [m].
         """
         self._revision += 1
         if not (math.isfinite(resolution_m) and resolution_m > 0):
@@ -163,16 +176,24 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
         seen = None if seen_voxels_m is None else np.asarray(seen_voxels_m, dtype=np.float64)
         if seen is not None and (seen.ndim != 2 or seen.shape[1] != 3 or not np.all(np.isfinite(seen))):
             raise ValueError(f"seen_voxels_m must be a finite (N, 3) array, got shape {seen.shape}")
+        if clearance_m is not None and not (math.isfinite(clearance_m) and clearance_m >= 0):
+            raise ValueError(f"clearance_m must be finite and >= 0, got {clearance_m}")
+        if (surface_m is not None or clearance_m is not None) and seen is None:
+            raise ValueError("clearance_m and surface_m need seen_voxels_m")
         octree = octree_object(octomap_binary, resolution_m)
         # Only a map that passed the checks above replaces the seen voxels of the last one.
         self._seen_voxels_m = seen
         self._octree_resolution_m = float(resolution_m)
         self._octree = octree
+        self._reset_allowance()
         if octree is None:
             if self._broad_phase is not None:
                 self._broad_phase.clear_occupancy()
             return
-        if self._broad_phase is not None:
+        if clearance_m is not None and seen is not None and seen.shape[0]:
+            surface = None if surface_m is None else np.asarray(surface_m, dtype=np.float64)
+            self._set_map_layers(seen, float(resolution_m), float(clearance_m), surface, surface_resolution_m)
+        elif self._broad_phase is not None:
             self._broad_phase.set_occupied_voxels(occupied_leaf_centers(octomap_binary, resolution_m), resolution_m)
 
     @property
@@ -191,6 +212,7 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
         self._octree = None
         self._seen_voxels_m = None
         self._octree_resolution_m = 0.0
+        self._reset_allowance()
         if self._broad_phase is not None:
             self._broad_phase.clear_occupancy()
 
@@ -305,25 +327,7 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
 
     def in_collision(self, q: FloatArray) -> bool:
         """True when the robot at `q` (dof,) touches itself, an object or the octree (padded vs the world)."""
-        if self._broad_phase_usable() and not self._broad_phase.state_suspect(self._robot.validate_q(q)):
-            return False
-        return bool(self._check(q, first_only=True))
-
-    def touches_cubes(self, q: FloatArray, centers_m: FloatArray, side_m: float) -> bool:
-        """True when a padded link at `q` touches one of the axis-aligned cubes of edge `side_m`
-        centered at `centers_m` (N, 3), e.g. voxels. Only the robot, none of the world's objects.
-
-        Cheaper than `set_objects` + `in_collision` for a few voxels checked once: no
-        SceneObjects and no broad phase rebuilt, one shared box shape, an AABB test first."""
-        centers = self._pose(self._robot.validate_q(q))
-        cubes = np.asarray(centers_m, dtype=np.float64).reshape(-1, 3)
-        gap = np.maximum(np.abs(centers[:, None, :] - cubes[None]) - 0.5 * side_m, 0.0)
-        near = np.einsum("skj,skj->sk", gap, gap) <= self._padded_radii_sq
-        cube = fcl.Box(side_m, side_m, side_m)
-        for s, k in zip(*np.nonzero(near)):
-            if self._collide(self._posed_obj(int(s), padded=True), fcl.CollisionObject(cube, fcl.Transform(cubes[k]))):
-                return True
-        return False
+        return bool(self._map_aware_check(self._robot.validate_q(q), first_only=True))
 
     def _broad_phase_usable(self) -> bool:
         # Attached objects are not in the sphere model yet: fall back to FCL for every state.
@@ -337,10 +341,7 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
         bare links against the world too (attached objects stay padded), e.g. to tell a state
         inside the padding from one touching an obstacle.
         """
-        # The spheres contain the padded hulls: when they touch nothing, neither does FCL.
-        if self._broad_phase_usable() and not self._broad_phase.state_suspect(self._robot.validate_q(q)):
-            return []
-        return self._check(q, first_only=False, padded=padded)
+        return self._map_aware_check(self._robot.validate_q(q), first_only=False, padded=padded)
 
     def _check_attached(self, q: FloatArray, centers: FloatArray, hits: list[tuple[str, str]], *, first_only: bool) -> None:
         """Appends (attached object, link / object / 'occupancy') pairs that touch; needs `_pose(q)` first."""
@@ -384,12 +385,12 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
         if self._broad_phase_usable():
             return self._suspects_free(a, b, resolution_rad, lambda _q: True)
         steps = step_count(a, b, resolution_rad)
-        if self._check(b, first_only=True):
+        if self._map_aware_check(b, first_only=True):
             return False
         for k in bisection_order(steps):
-            if self._check(a + (b - a) * (k / steps), first_only=True):
+            if self._map_aware_check(a + (b - a) * (k / steps), first_only=True):
                 return False
-        return not self._check(a, first_only=True)
+        return not self._map_aware_check(a, first_only=True)
 
     def path_valid(self, path: FloatArray, resolution_rad: float) -> bool:
         """True when every segment of `path` (K, dof), K >= 1, passes `motion_valid`."""
@@ -442,8 +443,12 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
         # FCL returns -1 for penetration and DBL_MAX for an octree without occupied cells.
         return 0.0 if d <= 0 else (math.inf if d >= 1e300 else float(d))
 
-    def _check(self, q: FloatArray, *, first_only: bool, padded: bool = True) -> list[tuple[str, str]]:
-        near_objects, near_octree, near_self, centers = self._near_pairs(q)
+    def _check(self, q: FloatArray, *, first_only: bool, padded: bool = True,
+               tier: int = -1) -> list[tuple[str, str]]:
+        """FCL on the pairs the spheres of clearance `tier` flag; tier 0 checks the map's surface
+        instead of its inflated octree (`surface_allowance.py`)."""
+        near_objects, near_octree, near_self, centers = self._near_pairs(q, tier)
+        octree = self._surface_octree if tier == 0 and self._surface_octree is not None else self._octree
         hits: list[tuple[str, str]] = []
         links = self._links
         if near_objects is not None:
@@ -453,10 +458,10 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
                     hits.append(pair)
                     if first_only:
                         return hits
-        if self._octree is not None:
+        if octree is not None:
             for s in np.flatnonzero(near_octree):
                 pair = (links[s], OCCUPANCY)
-                if pair not in hits and self._collide(self._posed_obj(int(s), padded=padded), self._octree):
+                if pair not in hits and self._collide(self._posed_obj(int(s), padded=padded), octree):
                     hits.append(pair)
                     if first_only:
                         return hits
@@ -473,7 +478,7 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
             self._check_attached(q, centers, hits, first_only=first_only)
         return hits
 
-    def _near_pairs(self, q: FloatArray):  # noqa: ANN202 - four arrays
+    def _near_pairs(self, q: FloatArray, tier: int = -1):  # noqa: ANN202 - four arrays
         """Pose the robot at `q` and say which pairs FCL must test.
 
         Returns (S, K) shape-object and (S,) shape-octree masks, a mask over `_self_pairs` (the
@@ -482,7 +487,7 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks):
         spheres contain the padded hulls, so no other pair can collide), which saves most FCL
         calls and the culling here; otherwise bounding spheres against the objects' boxes cull."""
         if self._broad_phase_usable():
-            objects, voxels, pairs, poses = self._broad_phase.suspect_pairs(self._robot.validate_q(q))
+            objects, voxels, pairs, poses = self._broad_phase.suspect_pairs(self._robot.validate_q(q), tier=tier)
             self._set_link_poses(poses.copy())
             link = self._shape_link_index
             return (objects[link] if self._object_names else None), voxels[link], pairs[self._self_pair_link_pair], None

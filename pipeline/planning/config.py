@@ -33,6 +33,18 @@ class PlannerConfig:
     sphere_first_exact_radius_rad: float = 0.5
     """Within this joint-space distance of the start or a goal, the sphere-first search still asks
     FCL about states the spheres flag [rad]."""
+    surface_allowance_rad: float = 1.0
+    """Within this joint-space distance (Euclidean) of the start or a goal, a map's clearance is
+    released: the padded links need only keep off what the cameras saw, so a goal near a surface
+    (a grasp in a shelf) is reachable [rad]. Only against maps that come with their seen voxels
+    and inflation (`CollisionWorld.set_octree(clearance_m=...)`); 0: the clearance holds everywhere."""
+    release_map_clearance: bool = True
+    """When no path keeps a map's clearance (shrunk near the start and goals) within the
+    sphere-first share of the budget, search the rest of it for a path that keeps the padded
+    links off what the cameras saw, without the clearance (`search` = "surface"). False: the
+    exact search with the clearance takes the rest of the budget."""
+    map_clearance_share: float = 0.3
+    """With `release_map_clearance`, the share of the budget for the search that keeps the clearance."""
     start_escape_rad: float = 0.1
     """A start inside the padding around the occupancy map may be left through states that keep
     off what the cameras saw, to a valid state within this distance in every joint [rad]
@@ -81,6 +93,10 @@ class PlannerConfig:
         require(self.sphere_first_exact_radius_rad >= 0,
                 f"planner.sphere_first_exact_radius_rad must be >= 0, got {self.sphere_first_exact_radius_rad}")
         require(self.workers >= 1, f"planner.workers must be >= 1, got {self.workers}")
+        require(self.surface_allowance_rad >= 0,
+                f"planner.surface_allowance_rad must be >= 0, got {self.surface_allowance_rad}")
+        require(0 < self.map_clearance_share <= 1,
+                f"planner.map_clearance_share must be in (0, 1], got {self.map_clearance_share}")
         require(self.start_escape_rad >= 0, f"planner.start_escape_rad must be >= 0, got {self.start_escape_rad}")
         require(self.start_escape_samples >= 0,
                 f"planner.start_escape_samples must be >= 0, got {self.start_escape_samples}")

@@ -83,8 +83,23 @@ class MotionPlanner:
         return self._space.roadmap_size(planner_id)
 
     def plan(self, problem: PlanProblem) -> PlanOutcome:
-        """Plan `problem`; expected failures come back as a status, bad input raises ValueError."""
+        """Plan `problem`; expected failures come back as a status, bad input raises ValueError.
+
+        Against a map with a clearance, the start and the goals are anchors: near them the
+        clearance is released (`CollisionWorld.anchored`, `config.surface_allowance_rad`)."""
         t0 = time.perf_counter()
+        if not self.world.has_surface_allowance:
+            return self._plan(problem, t0)
+        # Validity near the anchors differs from query to query: no roadmap outlives one.
+        self._space.forget_planners()
+        anchors = [self.robot.validate_q(problem.start_rad, "start")]
+        if problem.goals_rad is not None:
+            goals = np.asarray(problem.goals_rad, dtype=np.float64)
+            anchors += list(goals.reshape(-1, self.robot.dof)) if goals.size % self.robot.dof == 0 else []
+        with self.world.anchored(np.array(anchors), self.config.surface_allowance_rad):
+            return self._plan(problem, t0)
+
+    def _plan(self, problem: PlanProblem, t0: float) -> PlanOutcome:
         if problem.planner_id not in PLANNERS:
             raise ValueError(f"unknown planner_id {problem.planner_id!r} (known: {', '.join(PLANNERS)})")
         if problem.num_planning_attempts < 1:
@@ -109,6 +124,17 @@ class MotionPlanner:
         goals = self._goal_set(problem, start, is_valid, rng)
         if isinstance(goals, PlanOutcome):
             return goals
+        if self.world.has_surface_allowance:
+            # The goal set (IK solutions, goals near a colliding one) and an escaped start anchor the search.
+            with self.world.anchored(np.vstack([start, goals] if real_start is None else [real_start, start, goals]),
+                                     self.config.surface_allowance_rad):
+                return self._search_attempts(problem, t0, start, real_start, start_problem, goals, is_valid,
+                                             motion_valid, rng)
+        return self._search_attempts(problem, t0, start, real_start, start_problem, goals, is_valid, motion_valid, rng)
+
+    def _search_attempts(self, problem: PlanProblem, t0: float, start: FloatArray, real_start: FloatArray | None,
+                         start_problem: PlanOutcome | None, goals: FloatArray, is_valid: StateValidFn,
+                         motion_valid: MotionValidFn, rng: np.random.Generator) -> PlanOutcome:
 
         best: PlanOutcome | None = None
         last_failure: PlanOutcome | None = None
@@ -130,7 +156,10 @@ class MotionPlanner:
         if best is None:
             return last_failure or PlanOutcome(PlanStatus.TIMEOUT, "no planning time left", planner_id=problem.planner_id)
         best = dataclasses.replace(best, attempt_lengths_rad=tuple(lengths))
-        return best if real_start is None else self._from_real_start(best, real_start, start_problem)
+        if real_start is None:
+            return best
+        assert start_problem is not None
+        return self._from_real_start(best, real_start, start_problem)
 
     def _from_real_start(self, outcome: PlanOutcome, real_start: FloatArray, start_problem: PlanOutcome) -> PlanOutcome:
         """`outcome` planned from an escape state, with the real start put in front (see `start_escape`)."""
@@ -234,7 +263,7 @@ class MotionPlanner:
         result = solve_ik(
             self.robot, pose.world_from_target, pose.link, rng=rng,
             position_tolerance_m=pose.position_tolerance_m, orientation_tolerance_rad=pose.orientation_tolerance_rad,
-            is_valid=is_valid, seed_q=start, max_restarts=self.config.ik_restarts,
+            is_valid=self._goal_validity(is_valid), seed_q=start, max_restarts=self.config.ik_restarts,
             max_solutions=self.config.ik_solutions,
         )
         details = {"position_error_m": result.best_position_error_m,
@@ -250,6 +279,16 @@ class MotionPlanner:
             return PlanOutcome(PlanStatus.GOAL_INVALID,
                                f"every IK solution for {pose.link} is in collision: {result.detail}", details=details)
         return result.solutions
+
+    def _goal_validity(self, is_valid: StateValidFn) -> StateValidFn:
+        """`is_valid` for a goal candidate: it is an anchor of its own check (see `plan`)."""
+        if not self.world.has_surface_allowance:
+            return is_valid
+
+        def valid(q: FloatArray) -> bool:
+            with self.world.anchored(np.vstack([self.world.anchors, q]), self.config.surface_allowance_rad):
+                return is_valid(q)
+        return valid
 
     def _near_anchor(self, q: FloatArray) -> bool:
         # Asked at the first suspect state of nearly every blocked edge: a loop of dot products
@@ -276,11 +315,12 @@ class MotionPlanner:
         """
         t0 = time.perf_counter()
         share = self.config.sphere_first_share
-        # Not against an occupancy map: on MotionBenchMaker clouds (--scene cloud, no inflation,
-        # 56 problems) sphere-first solved 55 % against the exact search's 62 % when voxels were
-        # only a distance field, and about as many (54 % against 52 %, a noisy run) with exact
-        # sphere-to-cube distances; not shown better, so the exact search stays.
-        if (share > 0 and self.world.spheres_usable and not self.world.has_octree
+        if self.world.has_surface_allowance and self.config.release_map_clearance and share > 0:
+            share = self.config.map_clearance_share
+        # Not against a bare octree (on MBM clouds without inflation it solved no more than the
+        # exact search); a map with its seen voxels and clearance is a sphere world like primitives.
+        if (share > 0 and self.world.spheres_usable
+                and (not self.world.has_octree or self.world.has_surface_allowance)
                 and self.world.sphere_self_overflag() <= MAX_SELF_OVERFLAG):
             self._anchors = [start, *goals]
             self._sphere_first = True
@@ -294,12 +334,31 @@ class MotionPlanner:
             spent_s = time.perf_counter() - t0
             if budget_s - spent_s <= 0:
                 return outcome
+            if self.world.has_surface_allowance and self.config.release_map_clearance:
+                return self._surface_search(problem, start, goals, is_valid, motion_valid, budget_s - spent_s, rng,
+                                            spent_s)
             exact = self._search(problem, start, goals, is_valid, motion_valid, budget_s - spent_s, rng)
             detail = exact.detail if exact.status is PlanStatus.SUCCESS else (
                 f"{exact.detail} (after {spent_s:.3f} s of sphere-first search)")
             return dataclasses.replace(exact, detail=detail, search="exact")
         outcome = self._search(problem, start, goals, is_valid, motion_valid, budget_s, rng)
         return dataclasses.replace(outcome, search="exact")
+
+    def _surface_search(self, problem: PlanProblem, start: FloatArray, goals: FloatArray, is_valid: StateValidFn,
+                        motion_valid: MotionValidFn, budget_s: float, rng: np.random.Generator,
+                        spent_s: float) -> PlanOutcome:
+        """Sphere-first search with the map's clearance released everywhere: every state is as
+        near an anchor as can be (`surface_allowance.py`), so the padded links keep off the
+        seen surface only. Where the cage or shelf is narrower than the clearance allows."""
+        self._sphere_first = True
+        try:
+            with self.world.anchored(self.world.anchors, math.inf):
+                outcome = self._search(problem, start, goals, is_valid, motion_valid, budget_s, rng)
+        finally:
+            self._sphere_first = False
+        detail = (f"{outcome.detail}; the map's clearance released after {spent_s:.3f} s"
+                  if outcome.status is PlanStatus.SUCCESS else f"{outcome.detail} (after {spent_s:.3f} s with the clearance)")
+        return dataclasses.replace(outcome, detail=detail, search="surface")
 
     def _search(self, problem: PlanProblem, start: FloatArray, goals: FloatArray, is_valid: StateValidFn,
                 motion_valid: MotionValidFn,

@@ -61,7 +61,7 @@ class PlanProblem:
     cancels long plans with it when it stops. Not used by `auto`'s forked race or the baselines."""
 
 
-SearchMode = Literal["", "sphere_first", "exact"]
+SearchMode = Literal["", "sphere_first", "exact", "surface"]
 
 
 @dataclass(frozen=True)
@@ -86,7 +86,8 @@ class PlanOutcome:
     """Machine-readable specifics of a failure (colliding pairs, violated joints), as an error
     reply's `details` carries them."""
     search: SearchMode = ""
-    """Which search found the path: sphere-first or exact ("" before any search ran)."""
+    """Which search found the path: sphere-first, exact, or against a map's surface with its
+    clearance released ("surface", see `PlannerConfig.release_map_clearance`); "" before any ran."""
     start_escape: StartEscape | None = None
     """Set when the start was inside the padding and the path begins with a way out of it."""
     attempt_lengths_rad: tuple[float, ...] = ()

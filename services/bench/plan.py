@@ -21,6 +21,7 @@ import dataclasses
 import json
 import math
 import sys
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,9 +33,7 @@ import numpy as np
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.evaluation.mbm import MbmProblem, MbmProblemSet, mbm_robot_config, parse_mbm
 from robonav.pipeline.evaluation.mesh_check import FINE_STEP_RAD, MeshCollisionChecker
-from robonav.pipeline.evaluation.surface_sampling import sample_object_surfaces
 from robonav.pipeline.perception.config import PerceptionConfig
-from robonav.pipeline.perception.maps.octree import OccupancyMap
 from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.planning.metrics import path_length_rad
 from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
@@ -43,7 +42,9 @@ from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.services.config import load_robot_file
+from robonav.services.bench.plan_maps import CAMERA_FRAMES, CLOUD_SPACING_M, CameraSetup, camera_map, cloud_map
+from robonav.services.campaign.run import EXTRA_CAMERAS_NAME, campaign_config
+from robonav.services.config import ConfigError, default_config_path, load_config, load_robot_file
 
 BENCH_RANGE_RAD = 1.0
 """RRTConnect range for the benchmark: MPLib's MBM figures solve 99.4 % with it, 82.7 % with OMPL's default."""
@@ -52,15 +53,11 @@ BENCH_EDGE_RESOLUTION_RAD = 0.02
 BENCH_PATH_CHECK_RESOLUTION_RAD = FINE_STEP_RAD
 """The planner re-checks the path it returns as finely as the benchmark's re-check, so a good
 planner loses no paths to it."""
-CLOUD_SPACING_M = 0.005
-"""Spacing of the synthetic surface cloud for `--scene cloud` [m]."""
-CLOUD_ORIGIN_HEIGHT_M = 0.3
-"""The synthetic camera sits this far above the cloud's highest point [m]."""
 SUMMARY_KEYS = ("problems", "solved", "solved_pct", "median_ms", "p95_ms", "median_length", "invalid_paths",
-                "median_cpu_ms")
+                "median_cpu_ms", "solved_by_search")
 PROGRESS_WIDTH = 30
 
-SceneKind = Literal["primitives", "cloud"]
+SceneKind = Literal["primitives", "cloud", "camera"]
 
 
 @dataclass(frozen=True)
@@ -90,6 +87,9 @@ class ProblemRecord:
     length_rad: float | None
     detail: str
     cpu_ms: float | None = None
+    search: str = ""
+    """Which search found the path (`PlanOutcome.search`): on a map, "surface" means no path
+    that keeps the map's clearance was found in time."""
 
     @property
     def solved(self) -> bool:
@@ -112,10 +112,20 @@ def add_parser(kinds: Any) -> None:  # noqa: ANN401 - argparse's private subpars
     plan.add_argument("--limit", type=_positive_int, default=None, help="first N problems of each family")
     plan.add_argument("--families", default=None, help="comma-separated family names (default: all)")
     plan.add_argument("--json", type=Path, default=None, help="write the summary as JSON to this file")
-    plan.add_argument("--scene", choices=("primitives", "cloud"), default="primitives",
-                      help="plan against the exact primitives, or an occupancy map built from a sampled cloud")
+    plan.add_argument("--scene", choices=("primitives", "cloud", "camera"), default="primitives",
+                      help="plan against the exact primitives, an occupancy map built from a sampled cloud, or "
+                           "one built from the configured cameras' noisy depth images (the arm at the start)")
     plan.add_argument("--cloud-inflation", type=_non_negative_float, default=PerceptionConfig().inflation_m,
-                      help="--scene cloud: occupancy inflation [m] (default: the perception default)")
+                      help="--scene cloud/camera: occupancy inflation [m] (default: the perception default)")
+    plan.add_argument("--config", type=Path, default=None,
+                      help="--scene camera: robonav YAML config whose cameras, sim noise and perception are used "
+                           "(default: packaged)")
+    plan.add_argument("--extra-cameras", default=str(default_config_path().with_name(EXTRA_CAMERAS_NAME)),
+                      help="--scene camera: a YAML file whose `cameras` join the config's, as `robonav campaign` "
+                           "adds them (default: the campaign's; 'none': the config's cameras alone)")
+    plan.add_argument("--surface-allowance", type=_non_negative_float, default=PlannerConfig().surface_allowance_rad,
+                      help="--scene cloud/camera: joint-space radius around the start and goal inside which the "
+                           "map's inflation is released to the seen surface [rad] (0: inflation everywhere)")
     plan.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     plan.add_argument("--robot", type=Path, default=None,
                       help="robot file (`robonav robot init` writes one) whose joints the problems use; default: the Panda")
@@ -126,6 +136,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         sets = select(load_problem_sets(args.problems), families=args.families, limit=args.limit)
         robot_base = load_robot_file(args.robot) if args.robot is not None else None
+        if robot_base is not None and args.scene == "camera":
+            raise ValueError("--scene camera renders the configured cell's cameras and robot; use it without --robot")
     except (OSError, ValueError) as exc:
         print(f"robonav bench plan: {exc}", file=sys.stderr)
         return 2
@@ -133,10 +145,21 @@ def main(args: argparse.Namespace) -> int:
     try:
         # OMPL takes one seed per process, before its first sampler (see seed_ompl_once).
         seed_ompl_once(args.seed)
+        perception = dataclasses.replace(PerceptionConfig(), inflation_m=args.cloud_inflation)
+        cameras = None
+        if args.scene == "camera":
+            cfg = load_config(args.config or default_config_path())
+            if args.extra_cameras != "none":
+                with tempfile.TemporaryDirectory() as tmp:
+                    cfg = load_config(campaign_config(args.config or default_config_path(), Path(tmp), noise=True,
+                                                      seed=args.seed, extra_cameras=Path(args.extra_cameras)))
+            perception = dataclasses.replace(cfg.perception, inflation_m=args.cloud_inflation)
+            cameras = CameraSetup(cfg.cameras, dataclasses.replace(cfg.sim.noise, enabled=True))
         records = run_plan_benchmark(sets, planner_id=args.planner, time_limit_s=args.time_limit, seed=args.seed,
                                      padding_m=args.padding, scene=args.scene, progress=progress, robot=robot_base,
-                                     perception=dataclasses.replace(PerceptionConfig(), inflation_m=args.cloud_inflation))
-    except ValueError as exc:
+                                     surface_allowance_rad=args.surface_allowance, perception=perception,
+                                     cameras=cameras)
+    except (ValueError, ConfigError) as exc:
         print(f"robonav bench plan: {exc}", file=sys.stderr)
         return 2
     report = build_report(records, config={
@@ -144,18 +167,25 @@ def main(args: argparse.Namespace) -> int:
         "robot": robot_base.name if robot_base is not None else "panda",
         "robot_file": str(args.robot) if args.robot is not None else None,
         "planner": args.planner, "time_limit_s": args.time_limit, "seed": args.seed, "padding_m": args.padding,
-        "scene": args.scene, "range_rad": BENCH_RANGE_RAD, "edge_resolution_rad": BENCH_EDGE_RESOLUTION_RAD,
+        "scene": args.scene, "surface_allowance_rad": args.surface_allowance, "range_rad": BENCH_RANGE_RAD, "edge_resolution_rad": BENCH_EDGE_RESOLUTION_RAD,
         "path_check_resolution_rad": BENCH_PATH_CHECK_RESOLUTION_RAD,
         "fine_check_step_rad": FINE_STEP_RAD, "fine_check_model": "link collision meshes (FCL BVH), unpadded",
         **({"cloud_spacing_m": CLOUD_SPACING_M, "occupancy_resolution_m": PerceptionConfig().resolution_m,
             "occupancy_inflation_m": args.cloud_inflation} if args.scene == "cloud" else {}),
+        **({"cameras": [c.camera_id for c in cameras.cameras], "camera_frames": CAMERA_FRAMES,
+            "extra_cameras": args.extra_cameras,
+            "occupancy_resolution_m": perception.resolution_m, "occupancy_inflation_m": args.cloud_inflation}
+           if cameras is not None else {}),
     })
     print(format_table(report))
+    by_search = report["overall"]["solved_by_search"]
+    if set(by_search) - {"", "sphere_first", "exact"}:
+        print("solved by search: " + ", ".join(f"{mode or 'none'} {count}" for mode, count in by_search.items()))
     unsolved = [r for r in records if not r.solved]
     if unsolved:
         print("\nunsolved:")
         for r in unsolved:
-            reason = "path failed the mesh re-check" if r.returned_path else r.status
+            reason = f"path failed the mesh re-check ({r.search} search)" if r.returned_path else r.status
             print(f"  {r.family} #{r.index}: {reason} ({r.wall_ms:.0f} ms): {r.detail}")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -215,6 +245,8 @@ def run_plan_benchmark(
     progress: TextIO | None = None,
     perception: PerceptionConfig | None = None,
     robot: RobotConfig | None = None,
+    surface_allowance_rad: float | None = None,
+    cameras: CameraSetup | None = None,
 ) -> list[ProblemRecord]:
     """Plan every problem, time each `plan` call and re-check every returned path on the meshes.
 
@@ -229,6 +261,8 @@ def run_plan_benchmark(
         progress: Stream for the progress bar, or None.
         perception: Occupancy map settings for `scene='cloud'`; None takes the defaults.
         robot: The robot the problems are for (their joint names must match); None is the Panda.
+        surface_allowance_rad: The planner's `surface_allowance_rad`; None: its default.
+        cameras: The cameras and their noise for `scene='camera'` (required then).
 
     Returns:
         One record per problem, in family and problem order.
@@ -237,6 +271,8 @@ def run_plan_benchmark(
     planner_config = PlannerConfig(allowed_planning_time_s=time_limit_s, range_rad=BENCH_RANGE_RAD,
                                    edge_resolution_rad=BENCH_EDGE_RESOLUTION_RAD,
                                    path_check_resolution_rad=BENCH_PATH_CHECK_RESOLUTION_RAD, seed=seed)
+    if surface_allowance_rad is not None:
+        planner_config = dataclasses.replace(planner_config, surface_allowance_rad=surface_allowance_rad)
     robots: dict[tuple[Any, ...], RobotModel] = {}
     records: list[ProblemRecord] = []
     # The file's own model first: its errors are the user's, and it names the URDF's links.
@@ -255,7 +291,7 @@ def run_plan_benchmark(
                 _draw_progress(progress, len(records), total, f"{problem_set.family} #{problem.index}")
             records.append(_run_one(problem_set.family, problem, robot, checker, planner_config,
                                     planner_id=planner_id, seed=seed, padding_m=padding_m, scene=scene,
-                                    perception=perception))
+                                    perception=perception, cameras=cameras))
     if progress is not None:
         _draw_progress(progress, len(records), total, "done")
         progress.write("\n")
@@ -265,11 +301,15 @@ def run_plan_benchmark(
 
 def _run_one(family: str, problem: MbmProblem, robot: RobotModel, checker: MeshCollisionChecker,
              planner_config: PlannerConfig, *, planner_id: str, seed: int, padding_m: float,
-             scene: SceneKind, perception: PerceptionConfig | None) -> ProblemRecord:
+             scene: SceneKind, perception: PerceptionConfig | None, cameras: CameraSetup | None) -> ProblemRecord:
     world = CollisionWorld(robot, padding_m=padding_m)
     if scene == "cloud":
-        binary, resolution_m = occupancy_of_objects(problem.obstacles, seed=seed + problem.index, config=perception)
-        world.set_octree(binary, resolution_m)
+        cloud_map(problem.obstacles, seed=seed + problem.index, config=perception).apply(world)
+    elif scene == "camera":
+        if cameras is None:
+            raise ValueError("scene 'camera' needs the cameras")
+        camera_map(problem.obstacles, robot, cameras.cameras, cameras.noise, problem.start, seed=seed + problem.index,
+                   config=perception).apply(world)
     else:
         world.set_objects(problem.obstacles)
     planner = MotionPlanner(robot, world, planner_config)
@@ -289,35 +329,16 @@ def _run_one(family: str, problem: MbmProblem, robot: RobotModel, checker: MeshC
     reached = goals[int(np.argmin(np.max(np.abs(goals - outcome.path[-1]), axis=1)))]
     check = checker.check_path(outcome.path, start_rad=problem.start, goal_rad=reached)
     return ProblemRecord(family, problem.index, status, wall_ms, True, check.valid,
-                         path_length_rad(outcome.path), outcome.detail if check.valid else check.detail, cpu_ms)
+                         path_length_rad(outcome.path), outcome.detail if check.valid else check.detail, cpu_ms,
+                         outcome.search)
 
 
 def occupancy_of_objects(objects: Sequence[SceneObject], *, seed: int,
                          config: PerceptionConfig | None = None) -> tuple[bytes, float]:
-    """The planning octree (inflated, octomap binary) of the objects' sampled surfaces.
-
-    The surfaces are sampled every `CLOUD_SPACING_M` and inserted in one scan from a point
-    above the scene, as a camera that sees every side would; one hit marks a voxel occupied.
-
-    Returns:
-        The octomap binary and its resolution [m].
-
-    Raises:
-        ValueError: some surface point lies beyond the map's `max_range_m` from the origin
-            (octomap would only clear along such rays, never mark their ends).
-    """
-    cfg = config if config is not None else PerceptionConfig()
-    points = sample_object_surfaces(objects, spacing_m=CLOUD_SPACING_M, rng=np.random.default_rng(seed))
-    occupancy = OccupancyMap(cfg)
-    if points.shape[0]:
-        low, high = points.min(axis=0), points.max(axis=0)
-        origin = np.array([0.5 * (low[0] + high[0]), 0.5 * (low[1] + high[1]), high[2] + CLOUD_ORIGIN_HEIGHT_M])
-        farthest = float(np.max(np.linalg.norm(points - origin, axis=1)))
-        if farthest > cfg.max_range_m:
-            raise ValueError(f"scene cloud reaches {farthest:.2f} m from the synthetic camera, beyond "
-                             f"perception max_range_m {cfg.max_range_m}")
-        occupancy.insert(points, origin)
-    return occupancy.planning_binary(), occupancy.resolution_m
+    """The planning octree (inflated, octomap binary) of the objects' sampled surfaces and its
+    resolution [m] (`plan_maps.cloud_map`)."""
+    planning_map = cloud_map(objects, seed=seed, config=config)
+    return planning_map.octomap_binary, planning_map.resolution_m
 
 
 def summarize(records: Sequence[ProblemRecord]) -> dict[str, Any]:
@@ -341,6 +362,8 @@ def summarize(records: Sequence[ProblemRecord]) -> dict[str, Any]:
         "median_length": _rounded(float(np.median(lengths)), 4) if lengths else None,
         "invalid_paths": sum(1 for r in records if r.returned_path and not r.path_valid),
         "median_cpu_ms": _rounded(float(np.median(cpu))) if cpu and len(cpu) == n else None,
+        "solved_by_search": {mode: sum(1 for r in solved if r.search == mode)
+                             for mode in sorted({r.search for r in solved})},
     }
 
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import weakref
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import fcl
 import numpy as np
@@ -173,8 +174,19 @@ class SphereBroadPhase:
     def clear_objects(self) -> None:
         self.set_objects([])
 
-    def set_occupied_voxels(self, centers_m: FloatArray, voxel_size_m: float) -> None:
+    def set_occupied_voxels(self, centers_m: FloatArray, voxel_size_m: float, clearance_m: float = 0.0, *,
+                            surface_m: FloatArray | None = None, surface_cell_m: float | None = None,
+                            tiers: int = 1) -> None:
         """Replace the occupancy with cubes of side `voxel_size_m` at `centers_m` (N, 3), world frame [m].
+
+        `clearance_m` is a distance the spheres must keep from what is occupied, on top of their
+        own (padded) radii [m]: a map's inflation applied to the robot instead of the voxels.
+        Queries of tier t (0..`tiers`) keep clearance_m * t / tiers; the default tier is the last
+        (`CollisionWorld`'s clearance that shrinks near a query's start and goals).
+
+        `surface_m` (M, 3), points inside the cubes: then what is occupied is the cells of side
+        `surface_cell_m` holding them (a grid nested in the voxels', e.g. 5 mm in 2 cm), and
+        the cubes' distance field only culls.
 
         Builds a Euclidean distance field on a grid aligned with the voxels, covering them plus a
         margin. A lookup at point p in cell c returns edt(c) - |p - center(c)| - half voxel
@@ -184,34 +196,33 @@ class SphereBroadPhase:
         centers = np.asarray(centers_m, dtype=np.float64).reshape(-1, 3)
         if not (math.isfinite(voxel_size_m) and voxel_size_m > 0):
             raise ValueError(f"voxel_size_m must be finite and > 0, got {voxel_size_m}")
+        if not (math.isfinite(clearance_m) and clearance_m >= 0) or tiers < 1:
+            raise ValueError(f"clearance_m must be finite and >= 0 and tiers >= 1, got {clearance_m}, {tiers}")
         if centers.shape[0] == 0:
             self.clear_occupancy()
             return
-        margin_cells = int(math.ceil(0.25 / voxel_size_m)) + 2
         low = centers.min(axis=0)
-        keys = np.round((centers - low) / voxel_size_m).astype(np.int64) + margin_cells
-        dims = keys.max(axis=0) + margin_cells + 1
-        if int(np.prod(dims)) > _MAX_GRID_CELLS:
-            raise ValueError(f"occupancy spans {dims.tolist()} voxels, more than {_MAX_GRID_CELLS} cells")
-        occupied = np.zeros(tuple(dims), dtype=bool)
-        occupied[keys[:, 0], keys[:, 1], keys[:, 2]] = True
-        half_diagonal = 0.5 * math.sqrt(3.0) * voxel_size_m
-        field = distance_transform_edt(~occupied) * voxel_size_m - half_diagonal
-        self._grid = np.ascontiguousarray(field, dtype=np.float64)
-        self._grid_origin = low - margin_cells * voxel_size_m
-        self._grid_voxel = float(voxel_size_m)
-        self._grid_box = np.array([low - 0.5 * voxel_size_m, centers.max(axis=0) + 0.5 * voxel_size_m])
-        self._occupied = occupied
+        self._coarse = _voxel_layer(np.round((centers - low) / voxel_size_m).astype(np.int64), float(voxel_size_m),
+                                    int(math.ceil(0.25 / voxel_size_m)) + 2, low)
+        self._fine = None
+        if surface_m is not None:
+            surface = np.asarray(surface_m, dtype=np.float64).reshape(-1, 3)
+            ratio = voxel_size_m / surface_cell_m if surface_cell_m is not None and surface_cell_m > 0 else math.nan
+            if not (math.isfinite(ratio) and abs(ratio - round(ratio)) < 1e-6 and round(ratio) >= 1):
+                raise ValueError(f"surface_cell_m must divide voxel_size_m {voxel_size_m}, got {surface_cell_m}")
+            if surface.shape[0]:
+                # Cells on the grid anchored at 0, like octomap's voxels: they nest in the voxels.
+                cell = float(surface_cell_m)  # type: ignore[arg-type]
+                self._fine = _cell_layer(np.floor(surface / cell).astype(np.int64), cell)
         self._has_grid = True
+        self._clearances = [float(clearance_m) * t / tiers for t in range(tiers + 1)]
         self._refresh_args()
 
     def clear_occupancy(self) -> None:
-        self._grid = np.zeros((1, 1, 1))
-        self._grid_origin = np.zeros(3)
-        self._grid_voxel = 1.0
-        self._grid_box = np.zeros((2, 3))
-        self._occupied = np.zeros((1, 1, 1), dtype=np.bool_)
+        self._coarse = _VoxelLayer(np.zeros((1, 1, 1)), np.zeros(3), 1.0, np.zeros((2, 3)), np.zeros((1, 1, 1), dtype=np.bool_))
+        self._fine = None
         self._has_grid = False
+        self._clearances = [0.0]
         self._refresh_args()
 
     def set_attached_spheres(self, name: str, link: str, centers_link_m: FloatArray, radii_m: FloatArray,
@@ -272,9 +283,22 @@ class SphereBroadPhase:
         # Built once per world change (never per call): the kernels read this one object.
         if not hasattr(self, "_att_lanes") or not hasattr(self, "_has_grid") or not hasattr(self, "_obj_kind"):
             return
+        # Every tier keeps its clearance from the surface cells when there are some (the seen
+        # points, not the voxels that quantise them), else from the voxels.
+        worlds = {c: self._new_lane_world(c, self._fine) for c in set(self._clearances)}
+        self._lane_worlds = [worlds[c] for c in self._clearances]
+        self._lane_world = self._lane_worlds[-1]
+        n_links = self._link_start.shape[0] - 1
+        self._pair_outputs = (np.zeros((n_links, self._obj_kind.shape[0]), dtype=np.bool_),
+                              np.zeros(n_links, dtype=np.bool_), np.zeros(self._self_pairs.shape[0], dtype=np.bool_),
+                              np.zeros((n_links, 4, 4)))
+
+    def _new_lane_world(self, grid_clearance: float, fine: _VoxelLayer | None) -> LaneWorld:
         parent, joint_type, q_slot, coefficients, base_joint, joint_from_base = self._kin_lane_args
         tables = self._pair_tables
-        self._lane_world = LaneWorld(
+        layer = self._coarse
+        fine = fine or layer
+        return LaneWorld(
             parent=parent, joint_type=joint_type, q_slot=q_slot, coefficients=coefficients, base_joint=base_joint,
             joint_from_base=joint_from_base, centers_joint=self._centers_joint, radii_self=self._radii_self,
             radii_world=self._radii_world, link_start=self._link_start, bound_center_joint=self._bound_center_joint,
@@ -284,20 +308,24 @@ class SphereBroadPhase:
             pair_slot=tables.slot, pair_low=tables.low, pair_step=tables.step, pair_count=tables.count,
             pair_gap=tables.gap_m, obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,
             obj_translation=self._obj_translation, obj_param=self._obj_param, obj_bound=self._obj_bound,
-            has_grid=self._has_grid, grid=self._grid, grid_origin=self._grid_origin, grid_voxel=self._grid_voxel,
-            grid_box=self._grid_box, occupied=self._occupied, att_center_joint=self._att_center_joint,
-            att_radius=self._att_radius, att_radius_world=self._att_radius_world, att_joint=self._att_joint,
+            has_grid=self._has_grid, grid=layer.field, grid_origin=layer.origin, grid_voxel=layer.voxel,
+            grid_box=layer.box, occupied=layer.occupied, fine=fine.occupied, fine_origin=fine.origin,
+            fine_voxel=fine.voxel, grid_clearance=float(grid_clearance),
+            att_center_joint=self._att_center_joint, att_radius=self._att_radius,
+            att_radius_world=self._att_radius_world, att_joint=self._att_joint,
             att_skip=self._att_skip, att_lanes=self._att_lanes, **self._lane_scratch)
-        n_links = self._link_start.shape[0] - 1
-        self._pair_outputs = (np.zeros((n_links, self._obj_kind.shape[0]), dtype=np.bool_),
-                              np.zeros(n_links, dtype=np.bool_), np.zeros(self._self_pairs.shape[0], dtype=np.bool_),
-                              np.zeros((n_links, 4, 4)))
 
-    def state_suspect(self, q: FloatArray) -> bool:
-        """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free."""
-        return bool(state_suspect_lanes(np.array(q, dtype=np.float64), self._lane_world))
+    @property
+    def clearances_m(self) -> tuple[float, ...]:
+        """Clearance kept from the occupancy by the queries of each tier, the default last [m]."""
+        return tuple(self._clearances)
 
-    def suspect_pairs(self, q: FloatArray) -> tuple[np.ndarray, np.ndarray, np.ndarray, FloatArray]:
+    def state_suspect(self, q: FloatArray, *, tier: int = -1) -> bool:
+        """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free.
+        `tier` picks the clearance kept from the occupancy (see `set_occupied_voxels`)."""
+        return bool(state_suspect_lanes(np.array(q, dtype=np.float64), self._lane_worlds[tier]))
+
+    def suspect_pairs(self, q: FloatArray, *, tier: int = -1) -> tuple[np.ndarray, np.ndarray, np.ndarray, FloatArray]:
         """The pairs whose spheres are within contact at `q` (dof,): only these can collide in FCL.
 
         Returns:
@@ -306,7 +334,7 @@ class SphereBroadPhase:
             world_from_link (L, 4, 4) of the collision links. Buffers reused by the next call.
         """
         objects, voxels, pairs, poses = self._pair_outputs
-        suspect_pairs_of_state(np.array(q, dtype=np.float64), self._lane_world, objects, voxels, pairs, poses)
+        suspect_pairs_of_state(np.array(q, dtype=np.float64), self._lane_worlds[tier], objects, voxels, pairs, poses)
         return objects, voxels, pairs, poses
 
     def clearance_pair_bounds_m(self, states: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -340,7 +368,7 @@ class SphereBroadPhase:
         return False
 
     def edge_suspects(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float, *,
-                      first_only: bool = False) -> tuple[np.ndarray, int]:
+                      first_only: bool = False, tier: int = -1) -> tuple[np.ndarray, int]:
         """Suspect states of the straight segment, in `CollisionWorld.motion_valid` order.
 
         The segment has `steps` = max(1, ceil(max|b - a| / resolution_rad)) intervals; state k is
@@ -360,16 +388,55 @@ class SphereBroadPhase:
         # Plain float and bool: an int would make numba compile another specialisation.
         resolution_rad, first_only = float(resolution_rad), bool(first_only)
         count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue,
-                                          self._lane_world)
+                                          self._lane_worlds[tier])
         if count < 0:
             # order (steps + 1 entries) and the FIFO of spans (< 2 * steps + 1 entries) share `_queue`.
             self._step_buffer = np.zeros(2 * steps + 2, dtype=np.int64)
             self._queue = np.zeros((2 * steps + 2, 2), dtype=np.int64)
             count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue,
-                                              self._lane_world)
+                                              self._lane_worlds[tier])
         if count == 0:
             return _NO_STEPS, steps  # most edges: no slice and copy (read-only, shared)
         return self._step_buffer[:count].copy(), steps
+
+
+class _VoxelLayer(NamedTuple):
+    field: FloatArray
+    """Lower bound on the distance to the occupied cubes at each cell center [m]."""
+    origin: FloatArray
+    """Center of cell (0, 0, 0) [m]."""
+    voxel: float
+    box: FloatArray
+    """(2, 3) bounding box of the occupied cubes [m]."""
+    occupied: np.ndarray
+
+
+def _voxel_layer(keys: np.ndarray, voxel_m: float, margin_cells: int, key0_center_m: FloatArray) -> _VoxelLayer:
+    """The cubes of grid `keys` (N, 3) (cell k centered at key0_center_m + k * voxel_m) with a Euclidean
+    distance field on a grid covering them plus `margin_cells`. A lookup at point p in cell c
+    returns edt(c) - |p - center(c)| - half a cube's diagonal, a lower bound on the distance from
+    p to any occupied cube; outside the grid the distance to the cubes' bounding box is used."""
+    low = keys.min(axis=0) - margin_cells
+    index = keys - low
+    dims = index.max(axis=0) + margin_cells + 1
+    if int(np.prod(dims)) > _MAX_GRID_CELLS:
+        raise ValueError(f"occupancy spans {dims.tolist()} cells, more than {_MAX_GRID_CELLS}")
+    occupied = np.zeros(tuple(dims), dtype=bool)
+    occupied[index[:, 0], index[:, 1], index[:, 2]] = True
+    field = distance_transform_edt(~occupied) * voxel_m - 0.5 * math.sqrt(3.0) * voxel_m
+    box = np.array([key0_center_m + (keys.min(axis=0) - 0.5) * voxel_m, key0_center_m + (keys.max(axis=0) + 0.5) * voxel_m])
+    return _VoxelLayer(np.ascontiguousarray(field, dtype=np.float64), key0_center_m + low * voxel_m, voxel_m, box, occupied)
+
+
+def _cell_layer(keys: np.ndarray, cell_m: float) -> _VoxelLayer:
+    """Occupied cells of grid `keys` (N, 3) (cell k spans [k, k + 1) * cell_m), without a distance field."""
+    low = keys.min(axis=0)
+    dims = keys.max(axis=0) - low + 1
+    if int(np.prod(dims)) > _MAX_GRID_CELLS:
+        raise ValueError(f"surface spans {dims.tolist()} cells, more than {_MAX_GRID_CELLS}")
+    occupied = np.zeros(tuple(dims), dtype=bool)
+    occupied[tuple((keys - low).T)] = True
+    return _VoxelLayer(np.zeros((1, 1, 1)), (low + 0.5) * cell_m, cell_m, np.zeros((2, 3)), occupied)
 
 
 _NO_STEPS = np.zeros(0, dtype=np.int64)

@@ -61,6 +61,74 @@ def voxel_distance(x: float, y: float, z: float, grid: FloatArray, origin: Float
     return math.sqrt(ox * ox + oy * oy + oz * oz)
 
 
+@nb.njit(cache=True)
+def touches_cells(x: float, y: float, z: float, radius: float, occupied: BoolArray, origin: FloatArray, voxel: float,
+                  fine: BoolArray, fine_origin: FloatArray, fine_voxel: float) -> bool:
+    """Whether the sphere touches an occupied cell of `fine`, a grid nested in the voxels'
+    (`occupied`, cell side `voxel`) whose occupied cells lie in occupied voxels: the voxels
+    the sphere touches first (`touches_voxels`' loop), then only their cells. With
+    `fine_voxel == voxel` the cells are the voxels."""
+    if fine_voxel == voxel:
+        return touches_voxels(x, y, z, radius, occupied, origin, voxel)
+    half = 0.5 * voxel
+    lo_i = max(int(math.ceil((x - radius - origin[0]) / voxel - 0.5)), 0)
+    hi_i = min(int(math.floor((x + radius - origin[0]) / voxel + 0.5)), occupied.shape[0] - 1)
+    lo_j = max(int(math.ceil((y - radius - origin[1]) / voxel - 0.5)), 0)
+    hi_j = min(int(math.floor((y + radius - origin[1]) / voxel + 0.5)), occupied.shape[1] - 1)
+    lo_k = max(int(math.ceil((z - radius - origin[2]) / voxel - 0.5)), 0)
+    hi_k = min(int(math.floor((z + radius - origin[2]) / voxel + 0.5)), occupied.shape[2] - 1)
+    r2 = radius * radius
+    for i in range(lo_i, hi_i + 1):
+        cx = origin[0] + i * voxel
+        dx = max(abs(x - cx) - half, 0.0)
+        for j in range(lo_j, hi_j + 1):
+            cy = origin[1] + j * voxel
+            dy = max(abs(y - cy) - half, 0.0)
+            dxy = dx * dx + dy * dy
+            if dxy > r2:
+                continue
+            for k in range(lo_k, hi_k + 1):
+                if not occupied[i, j, k]:
+                    continue
+                cz = origin[2] + k * voxel
+                dz = max(abs(z - cz) - half, 0.0)
+                if dxy + dz * dz > r2:
+                    continue
+                # The voxel's cells that the sphere's box overlaps.
+                if _touches_cells_in(x, y, z, r2, max(cx - half, x - radius), min(cx + half, x + radius),
+                                     max(cy - half, y - radius), min(cy + half, y + radius), max(cz - half, z - radius),
+                                     min(cz + half, z + radius), fine, fine_origin, fine_voxel):
+                    return True
+    return False
+
+
+@nb.njit(cache=True, inline="always")
+def _touches_cells_in(x: float, y: float, z: float, r2: float, x0: float, x1: float, y0: float, y1: float, z0: float,
+                      z1: float, fine: BoolArray, origin: FloatArray, cell: float) -> bool:
+    """Whether an occupied cell of `fine` overlapping the box [x0, x1] x [y0, y1] x [z0, z1] (inside
+    one voxel) is within sqrt(r2) of (x, y, z)."""
+    half = 0.5 * cell
+    lo_i = max(int(math.ceil((x0 - origin[0]) / cell - 0.5)), 0)
+    hi_i = min(int(math.floor((x1 - origin[0]) / cell + 0.5)), fine.shape[0] - 1)
+    lo_j = max(int(math.ceil((y0 - origin[1]) / cell - 0.5)), 0)
+    hi_j = min(int(math.floor((y1 - origin[1]) / cell + 0.5)), fine.shape[1] - 1)
+    lo_k = max(int(math.ceil((z0 - origin[2]) / cell - 0.5)), 0)
+    hi_k = min(int(math.floor((z1 - origin[2]) / cell + 0.5)), fine.shape[2] - 1)
+    for i in range(lo_i, hi_i + 1):
+        dx = max(abs(x - (origin[0] + i * cell)) - half, 0.0)
+        for j in range(lo_j, hi_j + 1):
+            dy = max(abs(y - (origin[1] + j * cell)) - half, 0.0)
+            dxy = dx * dx + dy * dy
+            if dxy > r2:
+                continue
+            for k in range(lo_k, hi_k + 1):
+                if fine[i, j, k]:
+                    dz = max(abs(z - (origin[2] + k * cell)) - half, 0.0)
+                    if dxy + dz * dz <= r2:
+                        return True
+    return False
+
+
 @nb.njit(cache=True, inline="always")
 def touches_voxels(x: float, y: float, z: float, radius: float, occupied: BoolArray, origin: FloatArray,
                    voxel: float) -> bool:

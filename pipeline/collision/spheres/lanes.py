@@ -31,7 +31,7 @@ from robonav.pipeline.collision.spheres.kernels import (
     CYLINDER,
     SPHERE,
     object_distance,
-    touches_voxels,
+    touches_cells,
     voxel_distance,
 )
 from robonav.pipeline.collision.spheres.self_pair_tables import ROUNDING_GUARD_M
@@ -54,8 +54,9 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "pair_offset", "pair_slot", "pair_low", "pair_step", "pair_count", "pair_gap",
     # scene primitives
     "obj_kind", "obj_rotation", "obj_translation", "obj_param", "obj_bound",
-    # occupied voxels: distance field and occupancy grid
-    "has_grid", "grid", "grid_origin", "grid_voxel", "grid_box", "occupied",
+    # occupied voxels: distance field, the occupied cells (maybe on a finer grid) and the clearance kept from them
+    "has_grid", "grid", "grid_origin", "grid_voxel", "grid_box", "occupied", "fine", "fine_origin", "fine_voxel",
+    "grid_clearance",
     # attached spheres
     "att_center_joint", "att_radius", "att_radius_world", "att_joint", "att_skip",
     # scratch: lane inputs and outputs, frames, placed spheres
@@ -244,7 +245,8 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     obj_kind, obj_rotation, obj_translation = world.obj_kind, world.obj_rotation, world.obj_translation
     obj_param, obj_bound = world.obj_param, world.obj_bound
     has_grid, grid, grid_origin, grid_voxel = world.has_grid, world.grid, world.grid_origin, world.grid_voxel
-    grid_box, occupied = world.grid_box, world.occupied
+    grid_box, occupied, grid_clearance = world.grid_box, world.occupied, world.grid_clearance
+    fine, fine_origin, fine_voxel = world.fine, world.fine_origin, world.fine_voxel
     att_center_joint, att_radius, att_radius_world = world.att_center_joint, world.att_radius, world.att_radius_world
     att_joint, att_skip = world.att_joint, world.att_skip
     pair_offset, pair_slot, pair_low, pair_step = world.pair_offset, world.pair_slot, world.pair_low, world.pair_step
@@ -282,14 +284,14 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
         if has_grid:
             for w in range(lanes):
                 if flags[w] or voxel_distance(bound_lanes[li, 0, w], bound_lanes[li, 1, w], bound_lanes[li, 2, w],
-                                               grid, grid_origin, grid_voxel, grid_box) > bound_world[li]:
+                                               grid, grid_origin, grid_voxel, grid_box) > bound_world[li] + grid_clearance:
                     continue
                 _ensure_placed(lanes, li, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
                 for s in range(link_start[li], link_start[li + 1]):
                     x, y, z = sphere_lanes[s, 0, w], sphere_lanes[s, 1, w], sphere_lanes[s, 2, w]
-                    reach = radii_world[s] + CONTACT_EPS_M
-                    if voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach and touches_voxels(
-                            x, y, z, reach, occupied, grid_origin, grid_voxel):
+                    reach = radii_world[s] + grid_clearance + CONTACT_EPS_M
+                    if voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach and touches_cells(
+                            x, y, z, reach, occupied, grid_origin, grid_voxel, fine, fine_origin, fine_voxel):
                         flags[w] = True
                         break
             if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
@@ -330,8 +332,10 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
                 if object_distance(x, y, z, k, obj_kind, obj_rotation, obj_translation, obj_param) <= reach:
                     flags[w] = True
                     break
+            reach += grid_clearance
             if flags[w] or (has_grid and voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach
-                            and touches_voxels(x, y, z, reach, occupied, grid_origin, grid_voxel)):
+                            and touches_cells(x, y, z, reach, occupied, grid_origin, grid_voxel, fine, fine_origin,
+                                              fine_voxel)):
                 flags[w] = True
                 break
             for lo in range(n_links):

@@ -12,7 +12,7 @@ import math
 
 import numba as nb
 
-from robonav.pipeline.collision.spheres.kernels import CONTACT_EPS_M, touches_voxels, voxel_distance
+from robonav.pipeline.collision.spheres.kernels import CONTACT_EPS_M, touches_cells, voxel_distance
 from robonav.pipeline.collision.spheres.lanes import LaneWorld, object_distance_lanes, place_lanes, points_within
 from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes, link_pose_from_lane
 from robonav.pipeline.types import BoolArray, FloatArray
@@ -64,12 +64,12 @@ def suspect_pairs_of_state(q: FloatArray, world: LaneWorld, object_flags: BoolAr
                     break
         voxel_flags[li] = False
         if world.has_grid and voxel_distance(bound_lanes[li, 0, 0], bound_lanes[li, 1, 0], bound_lanes[li, 2, 0], grid,
-                                             grid_origin, grid_voxel, grid_box) <= bound_world[li]:
+                                             grid_origin, grid_voxel, grid_box) <= bound_world[li] + world.grid_clearance:
             for s in range(link_start[li], link_start[li + 1]):
                 x, y, z = sphere_lanes[s, 0, 0], sphere_lanes[s, 1, 0], sphere_lanes[s, 2, 0]
-                reach = radii_world[s] + CONTACT_EPS_M
-                if voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach and touches_voxels(
-                        x, y, z, reach, occupied, grid_origin, grid_voxel):
+                reach = radii_world[s] + world.grid_clearance + CONTACT_EPS_M
+                if voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach and touches_cells(
+                        x, y, z, reach, occupied, grid_origin, grid_voxel, world.fine, world.fine_origin, world.fine_voxel):
                     voxel_flags[li] = True
                     break
     for p in range(self_pairs.shape[0]):

@@ -103,6 +103,9 @@ def test_summary_counts_times_over_all_problems_and_lengths_over_solved() -> Non
     assert summary["p95_ms"] == pytest.approx(float(np.percentile([10, 30, 1000, 20], 95)))
     assert summary["median_length"] == pytest.approx(3.0)
     assert summary["median_cpu_ms"] is None  # records made without a CPU time
+    assert summary["solved_by_search"] == {"": 2}
+    searched = [dataclasses.replace(r, search=mode) for r, mode in zip(records, ("sphere_first", "", "", "surface"))]
+    assert summarize(searched)["solved_by_search"] == {"sphere_first": 1, "surface": 1}
     timed = [dataclasses.replace(r, cpu_ms=cpu) for r, cpu in zip(records, (4.0, 6.0, 900.0, 5.0))]
     assert summarize(timed)["median_cpu_ms"] == pytest.approx(5.5)
     none_solved = summarize([_record("b", 5.0, path=False, valid=False)])

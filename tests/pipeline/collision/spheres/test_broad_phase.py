@@ -222,3 +222,31 @@ def test_edge_suspects_are_the_suspect_states_of_the_edge(panda: RobotModel,
         assert set(suspects.tolist()) == expected and len(suspects) == len(expected)
         flagged += len(expected)
     assert flagged > 0
+
+
+def test_voxel_clearance_tiers_and_surface_cells(panda: RobotModel) -> None:
+    """Tier t keeps clearance * t / tiers from the occupancy; surface cells nested in the voxels
+    flag only where the spheres reach a cell, not merely its voxel."""
+    home = panda.home_position_rad
+    broad = SphereBroadPhase(panda)
+    probe = CollisionWorld(panda, padding_m=0.0, broad_phase=False)
+    target = panda.frame_pose(home, "panda_grasptarget")[:3, 3]
+    for gap in np.arange(0.0, 0.08, 0.002):  # a 2 cm voxel just beyond the fingertips' spheres
+        center = (np.floor((target - np.array([0.0, 0.0, 0.02 + gap])) / 0.02) + 0.5) * 0.02
+        broad.set_occupied_voxels(center[None], 0.02)
+        if not broad.state_suspect(home) and not probe.touches_cubes(home, center[None], 0.02):
+            break
+    else:
+        pytest.fail("no free voxel below the fingertips")
+    broad.set_occupied_voxels(center[None], 0.02, 0.06, tiers=3)
+    assert broad.clearances_m == pytest.approx((0.0, 0.02, 0.04, 0.06))
+    flags = [broad.state_suspect(home, tier=t) for t in range(4)]
+    assert flags[0] is False and flags[3] is True and flags == sorted(flags)  # more clearance, more flagged
+    assert broad.state_suspect(home) == flags[3]  # the default is the full clearance
+    # One surface point in a corner of the voxel: its 5 mm cell flags no tier its voxel does not.
+    corner = center + 0.0099
+    broad.set_occupied_voxels(center[None], 0.02, 0.06, surface_m=corner[None], surface_cell_m=0.005, tiers=3)
+    flags_cells = [broad.state_suspect(home, tier=t) for t in range(4)]
+    assert flags_cells == sorted(flags_cells) and sum(flags_cells) <= sum(flags)
+    with pytest.raises(ValueError, match="surface_cell_m"):
+        broad.set_occupied_voxels(center[None], 0.02, surface_m=corner[None], surface_cell_m=0.003)

@@ -1,0 +1,121 @@
+"""A map's clearance: kept away from the anchors, shrunk toward them, never below the seen surface."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robonav.pipeline.collision.surface_allowance import TIERS
+from robonav.pipeline.collision.world import OCCUPANCY, CollisionWorld
+from robonav.pipeline.perception.config import PerceptionConfig
+from robonav.pipeline.perception.maps.octree import OccupancyMap
+from robonav.pipeline.robot.model import RobotModel
+
+SURFACE_CELL_M = 0.005
+INFLATION_M = 0.02
+
+
+def _wall_points(x_m: float, center_m: np.ndarray, spacing_m: float = 0.004) -> np.ndarray:
+    """A 20 x 20 cm plane of points at x = x_m, facing the hand."""
+    steps = np.arange(-0.1, 0.1 + 1e-9, spacing_m)
+    y, z = np.meshgrid(center_m[1] + steps, center_m[2] + steps, indexing="ij")
+    return np.column_stack([np.full(y.size, x_m), y.ravel(), z.ravel()])
+
+
+def _hand_front_x(panda: RobotModel, q: np.ndarray) -> float:
+    """Largest world x of the hand's and fingers' hulls at `q` [m]."""
+    poses = panda.link_poses(q)
+    front = -math.inf
+    for link in ("panda_hand", "panda_leftfinger", "panda_rightfinger"):
+        vertices = panda.link_hull_vertices[link]
+        pose = poses[link]
+        front = max(front, float((vertices @ pose[:3, :3].T + pose[:3, 3])[:, 0].max()))
+    return front
+
+
+def _map_world(panda: RobotModel, points: np.ndarray, *, broad_phase: bool = True) -> CollisionWorld:
+    """A world whose map is `points` seen from 1 m in front of them, inflated as perception does."""
+    occupancy = OccupancyMap(PerceptionConfig(inflation_m=INFLATION_M))
+    occupancy.insert(points, points.mean(axis=0) + np.array([1.0, 0.0, 0.0]))
+    world = CollisionWorld(panda, padding_m=0.0, broad_phase=broad_phase)
+    world.set_octree(occupancy.planning_binary(), occupancy.resolution_m, occupancy.occupied_centers_m(),
+                     clearance_m=INFLATION_M, surface_m=points, surface_resolution_m=SURFACE_CELL_M)
+    return world
+
+
+def test_goal_near_a_surface_is_free_at_the_anchor_and_blocked_away_from_it(panda: RobotModel) -> None:
+    home = panda.home_position_rad
+    target = panda.frame_pose(home, "panda_grasptarget")[:3, 3]
+    # A wall 1.2 cm beyond the fingertips: inside the 2 cm inflation, clear of the seen surface.
+    world = _map_world(panda, _wall_points(_hand_front_x(panda, home) + 0.012, target))
+    assert world.has_surface_allowance and world.map_clearance_m == INFLATION_M
+    hits = world.collisions(home)
+    assert hits and all(other == OCCUPANCY for _, other in hits)
+    with world.anchored(home[None], 1.0):
+        assert world.clearance_tier(home) == 0
+        assert world.collisions(home) == [] and not world.in_collision(home)
+        # Farther from the anchor the clearance comes back, tier by tier.
+        away = [home + np.full(panda.dof, d / math.sqrt(panda.dof)) for d in (0.1, 0.3, 0.55, 0.8, 1.2)]
+        assert [world.clearance_tier(q) for q in away] == [0, 1, 2, 3, -1]
+    assert world.in_collision(home)  # the block ended: no anchors, full clearance
+
+
+def test_a_goal_that_touches_the_seen_surface_stays_in_collision(panda: RobotModel) -> None:
+    home = panda.home_position_rad
+    target = panda.frame_pose(home, "panda_grasptarget")[:3, 3]
+    world = _map_world(panda, _wall_points(_hand_front_x(panda, home) - 0.01, target))
+    with world.anchored(home[None], math.inf):
+        assert world.clearance_tier(home) == 0
+        assert any(other == OCCUPANCY for _, other in world.collisions(home))
+
+
+def test_near_surface_spheres_are_conservative(panda: RobotModel) -> None:
+    """At tier 0 the spheres on the surface cells clear only states FCL clears on the surface octree."""
+    home = panda.home_position_rad
+    target = panda.frame_pose(home, "panda_grasptarget")[:3, 3]
+    points = _wall_points(_hand_front_x(panda, home) + 0.005, target)
+    fast, slow = _map_world(panda, points), _map_world(panda, points, broad_phase=False)
+    states = home + np.random.default_rng(3).uniform(-0.15, 0.15, size=(120, panda.dof))
+    touching = 0
+    with fast.anchored(home[None], math.inf), slow.anchored(home[None], math.inf):
+        for q in states:
+            exact = slow.in_collision(q)
+            touching += exact
+            assert fast.in_collision(q) == exact
+    assert 0 < touching < len(states)
+
+
+def test_edge_tier_is_the_strictest_of_the_segment(panda: RobotModel) -> None:
+    home = panda.home_position_rad
+    world = _map_world(panda, _wall_points(0.9, np.array([0.9, 0.0, 0.5])))
+    step = np.full(panda.dof, 1.0 / math.sqrt(panda.dof))
+    with world.anchored(home[None], 1.0):
+        assert world.edge_tier(home, home + 0.1 * step) == 0
+        tiers = [world.clearance_tier(home + t * 0.6 * step) for t in np.linspace(0, 1, 11)]
+        assert world.edge_tier(home, home + 0.6 * step) == max(tiers) == 2
+        assert world.edge_tier(home + 2 * step, home + 3 * step) == -1
+
+
+def test_map_layer_input_errors(panda: RobotModel) -> None:
+    occupancy = OccupancyMap(PerceptionConfig())
+    points = _wall_points(0.9, np.array([0.9, 0.0, 0.5]))
+    occupancy.insert(points, np.array([1.9, 0.0, 0.5]))
+    world = CollisionWorld(panda, padding_m=0.0)
+    binary, seen = occupancy.planning_binary(), occupancy.occupied_centers_m()
+    with pytest.raises(ValueError, match="need seen_voxels_m"):
+        world.set_octree(binary, 0.02, clearance_m=0.02)
+    with pytest.raises(ValueError, match="clearance_m"):
+        world.set_octree(binary, 0.02, seen, clearance_m=-0.01)
+    with pytest.raises(ValueError, match="surface_resolution_m"):
+        world.set_octree(binary, 0.02, seen, clearance_m=0.02, surface_m=points, surface_resolution_m=0.003)
+    with pytest.raises(ValueError, match="radius_rad"):
+        with world.anchored(panda.home_position_rad[None], math.nan):
+            pass
+    # Without a clearance the map is the octree as it is: no allowance anywhere.
+    world.set_octree(binary, 0.02, seen)
+    assert not world.has_surface_allowance and world.map_clearance_m == 0.0
+    with world.anchored(panda.home_position_rad[None], 1.0):
+        assert world.clearance_tier(panda.home_position_rad) == -1
+    assert TIERS >= 2
