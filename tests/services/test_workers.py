@@ -14,7 +14,7 @@ import zenoh
 from robonav.pipeline.wire.codec import ProtocolError
 from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.messages import ErrorReply, StopRequest, StopResponse
-from robonav.services.client import query_one, reply_message
+from robonav.services.client import QueryFailed, query_one, reply_message
 from robonav.services.common import guarded_queryable
 from robonav.services.workers import RequestWorkers
 
@@ -147,7 +147,15 @@ def test_closing_waits_once_for_all_running_handlers_not_once_each(bus: tuple[ze
                              workers=3, queue_size=4)
     queryable = service.declare_queryable(KEY, workers.callback)
     wait_until_served(client, KEY)
-    askers = [threading.Thread(target=_ask, args=(client, KEY, 5.0), daemon=True) for _ in range(3)]
+    answers: list[object] = []
+
+    def ask() -> None:
+        try:
+            answers.append(_ask(client, KEY, 10.0))
+        except QueryFailed as exc:
+            answers.append(exc)
+
+    askers = [threading.Thread(target=ask, daemon=True) for _ in range(3)]
     for asker in askers:
         asker.start()
     assert all(started.acquire(timeout=10.0) for _ in askers), "the handlers did not start"
@@ -155,7 +163,10 @@ def test_closing_waits_once_for_all_running_handlers_not_once_each(bus: tuple[ze
     workers.close(timeout_s=1.0)
     # Three stuck handlers: one budget of 1 s in all (a budget per thread would take 3 s).
     assert time.monotonic() - began < 2.5
-    release.set()
+    release.set()  # the abandoned handlers still answer when they end
+    for asker in askers:
+        asker.join(15.0)
+    assert len(answers) == 3 and all(isinstance(a, StopResponse) for a in answers), answers
     queryable.undeclare()
 
 
