@@ -110,7 +110,6 @@ class MotionPlanner:
         rng = np.random.default_rng(problem.seed)
         start = self.robot.validate_q(problem.start_rad, "start")
         is_valid, motion_valid = self._validity(problem)
-
         real_start: FloatArray | None = None
         start_problem = self._state_problem(start, is_valid, "start", PlanStatus.START_INVALID)
         if start_problem is not None:
@@ -135,7 +134,6 @@ class MotionPlanner:
     def _search_attempts(self, problem: PlanProblem, t0: float, start: FloatArray, real_start: FloatArray | None,
                          start_problem: PlanOutcome | None, goals: FloatArray, is_valid: StateValidFn,
                          motion_valid: MotionValidFn, rng: np.random.Generator) -> PlanOutcome:
-
         best: PlanOutcome | None = None
         last_failure: PlanOutcome | None = None
         lengths: list[float] = []
@@ -156,9 +154,8 @@ class MotionPlanner:
         if best is None:
             return last_failure or PlanOutcome(PlanStatus.TIMEOUT, "no planning time left", planner_id=problem.planner_id)
         best = dataclasses.replace(best, attempt_lengths_rad=tuple(lengths))
-        if real_start is None:
+        if real_start is None or start_problem is None:
             return best
-        assert start_problem is not None
         return self._from_real_start(best, real_start, start_problem)
 
     def _from_real_start(self, outcome: PlanOutcome, real_start: FloatArray, start_problem: PlanOutcome) -> PlanOutcome:
