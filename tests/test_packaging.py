@@ -31,3 +31,14 @@ def test_every_folder_with_python_code_is_a_declared_package() -> None:
 def test_package_dirs_map_the_four_roots() -> None:
     _, package_dir = _declared()
     assert package_dir == {package: folder for folder, package in ROOTS.items()}
+
+
+MAX_MODULE_LINES = 500
+LONG_BY_DESIGN = {"pipeline/wire/messages.py"}  # one class per wire message, kept in one place
+
+
+def test_modules_stay_one_concept_long() -> None:
+    long = {str(source.relative_to(REPO_ROOT)): n for folder in ("pipeline", "services", "calibration")
+            for source in (REPO_ROOT / folder).rglob("*.py")
+            if (n := len(source.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES}
+    assert set(long) <= LONG_BY_DESIGN, f"modules over {MAX_MODULE_LINES} lines: split them by concept: {long}"
