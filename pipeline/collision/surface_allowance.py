@@ -57,6 +57,11 @@ class SurfaceAllowance:
     _anchors: FloatArray
     _anchor_radius_sq: float
 
+    def _init_allowance(self, dof: int) -> None:
+        self._anchors = np.zeros((0, dof))
+        self._anchor_radius_sq = 0.0
+        self._reset_allowance()
+
     def _reset_allowance(self) -> None:
         self._surface_octree = None
         self._map_clearance_m = 0.0

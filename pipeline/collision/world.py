@@ -48,9 +48,9 @@ OCCUPANCY = "occupancy"
 class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance):
     """A robot model plus the obstacles it must avoid, all in the robot base (world) frame.
 
-    Not thread-safe: FCL objects are re-posed on every query. The distance queries are in
-    `clearance.py`, the sphere-first checks in `sphere_first.py`, the map's clearance and its
-    allowance near a query's start and goals in `surface_allowance.py` (all mix into this class).
+    Not thread-safe: FCL objects are re-posed on every query. Mixed in: the distance queries
+    (`clearance.py`), the sphere-first checks (`sphere_first.py`), the map's clearance and its
+    allowance near a query's ends (`surface_allowance.py`).
     """
 
     def __init__(self, robot: RobotModel, padding_m: float | None = None, *, broad_phase: bool = True) -> None:
@@ -94,8 +94,7 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance):
         n = len(self._links)
         self._self_pairs = np.array(
             [(i, j) for i in range(n) for j in range(i + 1, n)
-             if self._links[i] != self._links[j]
-             and tuple(sorted((self._links[i], self._links[j]))) not in ignored],
+             if self._links[i] != self._links[j] and tuple(sorted((self._links[i], self._links[j]))) not in ignored],
             dtype=np.int64,
         ).reshape(-1, 2)
         self._request = fcl.CollisionRequest()
@@ -104,9 +103,7 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance):
         self._octree: fcl.CollisionObject | None = None
         self._seen_voxels_m: FloatArray | None = None
         self._octree_resolution_m = 0.0
-        self._anchors = np.zeros((0, robot.dof))
-        self._anchor_radius_sq = 0.0
-        self._reset_allowance()
+        self._init_allowance(robot.dof)
         self._object_names: list[str] = []
         self._object_fcl: list[fcl.CollisionObject] = []
         self._object_center = np.zeros((0, 3))
