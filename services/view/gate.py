@@ -68,6 +68,13 @@ class TokenGate:
                 return
             ready.set()
             self._loop.run_forever()
+            # Connections still open when the gate closes end here, in their own loop; left
+            # pending, they are collected later and complain that their loop is gone.
+            pending = asyncio.all_tasks(self._loop)
+            for task in pending:
+                task.cancel()
+            self._loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+            self._loop.close()
 
         self._thread = threading.Thread(target=run, name="robonav-view-gate", daemon=True)
         self._thread.start()

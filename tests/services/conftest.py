@@ -44,14 +44,15 @@ def write_config(directory: Path, name: str, **sections: dict) -> Path:
     return path
 
 
-def wait_until_served(session: zenoh.Session, key: str, timeout_s: float = 10.0) -> None:
-    """Wait until `session` sees a queryable on `key`: a query sent right after another session
-    declared one may reach the router before the declaration does, and get no reply at all."""
+def wait_until_served(session: zenoh.Session, key: str, timeout_s: float = 10.0, *, served: bool = True) -> None:
+    """Wait until `session` sees a queryable on `key` (or, with `served=False`, none): a query
+    sent right after another session declared one may reach the router before the declaration
+    does, and get no reply at all; one sent after an undeclaration may still be routed to it."""
     querier = session.declare_querier(key)
     deadline = time.monotonic() + timeout_s
     try:
-        while not querier.matching_status.matching:
-            assert time.monotonic() < deadline, f"no queryable on {key} after {timeout_s} s"
+        while querier.matching_status.matching != served:
+            assert time.monotonic() < deadline, f"queryable on {key} still {'absent' if served else 'seen'} after {timeout_s} s"
             time.sleep(0.02)
     finally:
         querier.undeclare()
@@ -61,7 +62,9 @@ class StandInPeer:
     """A bare queryable on `key` standing in for a service: `answer(query)` runs for each query,
     which is kept (a silent or slow peer holds its queries) and dropped by `close`, never while
     its callback still runs (the callback holds it: dropping it then raises "Already borrowed").
-    With `observer`, waits until that session sees the queryable."""
+    With `observer`, waits until that session sees the queryable, and on `close` until it no
+    longer does: the next stand-in on the same key must not be taken as seen because the old
+    declaration still is."""
 
     def __init__(self, session: zenoh.Session, key: str, answer: Callable[[zenoh.Query], object], *,
                  observer: zenoh.Session | None = None) -> None:
@@ -73,6 +76,7 @@ class StandInPeer:
                 self.queries.append(query)
                 answer(query)
 
+        self._key, self._observer = key, observer
         self._queryable = session.declare_queryable(key, callback, complete=True)
         if observer is not None:
             wait_until_served(observer, key)
@@ -82,6 +86,8 @@ class StandInPeer:
             for query in self.queries:
                 query.drop()
             self._queryable.undeclare()
+        if self._observer is not None:
+            wait_until_served(self._observer, self._key, served=False)
 
 
 @pytest.fixture
