@@ -22,6 +22,8 @@ from robonav.services.config import ZenohConfig
 from robonav.services.keys import Keys
 from robonav.services.planner.scene import PlanningScene
 
+from ..conftest import wait_until_served
+
 HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 KEY = Keys("arm0").scene
 TETRA_VERTICES = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.1]])
@@ -43,6 +45,7 @@ def scene_service(panda: RobotModel) -> Iterator[tuple[PlanningScene, CollisionW
     scene = PlanningScene(world, threading.Lock(), current_q=lambda: HOME)
     queryable = node_session.declare_queryable(KEY, guarded_queryable(scene.handle_scene, "planner"))
     client = open_session(ZenohConfig(connect=(endpoint,)))
+    wait_until_served(client, KEY)
     yield scene, world, client
     queryable.undeclare()
     for s in (client, node_session, router):
