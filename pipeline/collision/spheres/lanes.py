@@ -35,6 +35,7 @@ from robonav.pipeline.collision.spheres.kernels import (
     voxel_distance,
 )
 from robonav.pipeline.collision.spheres.self_pair_tables import ROUNDING_GUARD_M
+from robonav.pipeline.collision.spheres.separating_planes import pair_separated
 from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes
 from robonav.pipeline.types import BoolArray, FloatArray, IntArray
 
@@ -52,6 +53,8 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "self_pairs", "link_joint", "joint_from_link_rotation", "joint_from_link_translation",
     # gap bounds of self pairs few joints apart (`self_pair_tables`)
     "pair_offset", "pair_slot", "pair_low", "pair_step", "pair_count", "pair_gap",
+    # planes that separate self pairs whose spheres overlap (`separating_planes`)
+    "sep_pair_start", "sep_owner", "sep_plane", "sep_vertex_start", "sep_vertices",
     # scene primitives
     "obj_kind", "obj_rotation", "obj_translation", "obj_param", "obj_bound",
     # occupied voxels: distance field, the occupied cells (maybe on a finer grid) and the clearance kept from them
@@ -61,7 +64,7 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "att_center_joint", "att_radius", "att_radius_world", "att_joint", "att_skip",
     # scratch: lane inputs and outputs, frames, placed spheres
     "cos_lanes", "sin_lanes", "q_lanes", "flags", "frames", "sphere_lanes", "bound_lanes", "placed", "near",
-    "distance", "att_lanes",
+    "distance", "att_lanes", "pair_near",
 )
 """What the lane kernels read, as one object: a call from Python unboxes one reference (~0.6 us)
 instead of some 45 arrays (~3 us, more than a 16-state chunk of an edge costs)."""
@@ -251,6 +254,8 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     att_joint, att_skip = world.att_joint, world.att_skip
     pair_offset, pair_slot, pair_low, pair_step = world.pair_offset, world.pair_slot, world.pair_low, world.pair_step
     pair_count, pair_gap, q_lanes = world.pair_count, world.pair_gap, world.q_lanes
+    sep_pair_start, sep_owner, sep_plane = world.sep_pair_start, world.sep_owner, world.sep_plane
+    sep_vertex_start, sep_vertices, pair_near = world.sep_vertex_start, world.sep_vertices, world.pair_near
     forward_joints_lanes(lanes, world.cos_lanes, world.sin_lanes, world.q_lanes, world.parent, world.joint_type,
                          world.q_slot, world.coefficients, world.base_joint, world.joint_from_base, frames)
     n_links = link_start.shape[0] - 1
@@ -305,6 +310,9 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
             continue
         _ensure_placed(lanes, la, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
         _ensure_placed(lanes, lb, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
+        touching = False
+        for w in range(lanes):
+            pair_near[w] = False
         for sa in range(link_start[la], link_start[la + 1]):
             # Against the other link's bounding sphere first: most spheres of a pair whose
             # bounds overlap are far from the other link.
@@ -312,8 +320,16 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
                 continue
             for sb in range(link_start[lb], link_start[lb + 1]):
                 if points_within(lanes, sphere_lanes, sa, sphere_lanes, sb, radii_self[sa] + radii_self[sb], near):
+                    touching = True
                     for w in range(lanes):
-                        flags[w] |= near[w]
+                        pair_near[w] |= near[w]
+        if not touching:
+            continue
+        for w in range(lanes):
+            # A lane flagged already needs no proof; one a plane separates is clear of this pair.
+            if pair_near[w] and not flags[w] and not pair_separated(
+                    w, p, la, lb, frames, link_joint, sep_pair_start, sep_owner, sep_plane, sep_vertex_start, sep_vertices):
+                flags[w] = True
         if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
             return
     # Attached spheres: against the world (padded) and the robot links they may not touch.

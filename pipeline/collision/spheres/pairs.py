@@ -14,6 +14,7 @@ import numba as nb
 
 from robonav.pipeline.collision.spheres.kernels import CONTACT_EPS_M, touches_cells, voxel_distance
 from robonav.pipeline.collision.spheres.lanes import LaneWorld, object_distance_lanes, place_lanes, points_within
+from robonav.pipeline.collision.spheres.separating_planes import pair_separated
 from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes, link_pose_from_lane
 from robonav.pipeline.types import BoolArray, FloatArray
 
@@ -84,6 +85,9 @@ def suspect_pairs_of_state(q: FloatArray, world: LaneWorld, object_flags: BoolAr
                     break
             if self_flags[p]:
                 break
+        if self_flags[p] and pair_separated(0, p, la, lb, frames, link_joint, world.sep_pair_start, world.sep_owner,
+                                            world.sep_plane, world.sep_vertex_start, world.sep_vertices):
+            self_flags[p] = False
 
 
 @nb.njit(cache=True)
