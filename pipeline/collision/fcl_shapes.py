@@ -8,6 +8,7 @@ the sphere broad phase.
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Sequence
 
 import fcl
@@ -171,8 +172,22 @@ class ExactLinkShapes:
         return obj
 
 
+_geometry_of: weakref.WeakKeyDictionary[LinkShape, tuple[fcl.CollisionGeometry, FloatArray, float]] = \
+    weakref.WeakKeyDictionary()
+
+
 def link_shape_geometry(shape: LinkShape) -> tuple[fcl.CollisionGeometry, FloatArray, float]:
-    """FCL geometry of a link shape in its SHAPE frame, with a bounding sphere (center (3,), radius) there [m]."""
+    """FCL geometry of a link shape in its SHAPE frame, with a bounding sphere (center (3,), radius) there [m].
+
+    Built once per shape and shared: a mesh's BVH takes tens of milliseconds (the UR5's gripper
+    meshes), and every planning world of a robot confirms contacts on the same shapes."""
+    cached = _geometry_of.get(shape)
+    if cached is None:
+        cached = _geometry_of[shape] = _link_shape_geometry(shape)
+    return cached
+
+
+def _link_shape_geometry(shape: LinkShape) -> tuple[fcl.CollisionGeometry, FloatArray, float]:
     if shape.kind == "mesh":
         if shape.vertices is None or shape.triangles is None:
             raise ValueError(f"link '{shape.link}': mesh shape carries no triangles")

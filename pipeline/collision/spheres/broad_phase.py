@@ -43,6 +43,9 @@ from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
 
 _MAX_GRID_CELLS = 60_000_000
+_PLANE_FIELDS = (("pair_whole", "pair_whole"), ("pair_range", "pair_range"), ("sub_piece", "sub_piece"), ("sub_start", "sub_start"), ("side", "side"),
+                 ("plane", "plane_joint"), ("piece_link", "piece_link"), ("piece_center", "piece_center_joint"),
+                 ("piece_radius", "piece_radius"), ("vertex_start", "vertex_start"), ("vertices", "vertices_joint"))
 
 
 class SphereBroadPhase:
@@ -115,7 +118,7 @@ class SphereBroadPhase:
                              if self_pair_tables else _no_pair_tables(self._self_pairs.shape[0]))
         self._planes = (cached_separating_planes(robot, self._kin, self._centers_link, self._radii_self, self._link_start,
                                                  self._self_pairs)
-                        if separating_planes else SeparatingPlanes.none(self._self_pairs.shape[0], n_links))
+                        if separating_planes else SeparatingPlanes.none(self._self_pairs.shape[0]))
         # Scratch buffers (no allocation per call).
         dof = robot.dof
         self._lane_scratch = dict(
@@ -314,9 +317,8 @@ class SphereBroadPhase:
             link_joint=self._link_joint, joint_from_link_rotation=self._kin.joint_from_link_rotation,
             joint_from_link_translation=self._kin.joint_from_link_translation_m, pair_offset=tables.offset,
             pair_slot=tables.slot, pair_low=tables.low, pair_step=tables.step, pair_count=tables.count,
-            pair_gap=tables.gap_m, sep_pair_start=self._planes.pair_start, sep_owner=self._planes.owner,
-            sep_plane=self._planes.plane_joint, sep_vertex_start=self._planes.vertex_start,
-            sep_vertices=self._planes.vertices_joint, obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,
+            pair_gap=tables.gap_m, **{f"sep_{name}": getattr(self._planes, field) for name, field in _PLANE_FIELDS},
+            obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,
             obj_translation=self._obj_translation, obj_param=self._obj_param, obj_bound=self._obj_bound,
             has_grid=self._has_grid, grid=layer.field, grid_origin=layer.origin, grid_voxel=layer.voxel,
             grid_box=layer.box, occupied=layer.occupied, fine=fine.occupied, fine_origin=fine.origin,

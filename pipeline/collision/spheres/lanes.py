@@ -54,7 +54,8 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     # gap bounds of self pairs few joints apart (`self_pair_tables`)
     "pair_offset", "pair_slot", "pair_low", "pair_step", "pair_count", "pair_gap",
     # planes that separate self pairs whose spheres overlap (`separating_planes`)
-    "sep_pair_start", "sep_owner", "sep_plane", "sep_vertex_start", "sep_vertices",
+    "sep_pair_whole", "sep_pair_range", "sep_sub_piece", "sep_sub_start", "sep_side", "sep_plane", "sep_piece_link",
+    "sep_piece_center", "sep_piece_radius", "sep_vertex_start", "sep_vertices",
     # scene primitives
     "obj_kind", "obj_rotation", "obj_translation", "obj_param", "obj_bound",
     # occupied voxels: distance field, the occupied cells (maybe on a finer grid) and the clearance kept from them
@@ -254,8 +255,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     att_joint, att_skip = world.att_joint, world.att_skip
     pair_offset, pair_slot, pair_low, pair_step = world.pair_offset, world.pair_slot, world.pair_low, world.pair_step
     pair_count, pair_gap, q_lanes = world.pair_count, world.pair_gap, world.q_lanes
-    sep_pair_start, sep_owner, sep_plane = world.sep_pair_start, world.sep_owner, world.sep_plane
-    sep_vertex_start, sep_vertices, pair_near = world.sep_vertex_start, world.sep_vertices, world.pair_near
+    pair_near = world.pair_near
     forward_joints_lanes(lanes, world.cos_lanes, world.sin_lanes, world.q_lanes, world.parent, world.joint_type,
                          world.q_slot, world.coefficients, world.base_joint, world.joint_from_base, frames)
     n_links = link_start.shape[0] - 1
@@ -328,7 +328,9 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
         for w in range(lanes):
             # A lane flagged already needs no proof; one a plane separates is clear of this pair.
             if pair_near[w] and not flags[w] and not pair_separated(
-                    w, p, la, lb, frames, link_joint, sep_pair_start, sep_owner, sep_plane, sep_vertex_start, sep_vertices):
+                    w, p, frames, link_joint, world.sep_pair_whole, world.sep_pair_range, world.sep_sub_piece,
+                    world.sep_sub_start, world.sep_side, world.sep_plane, world.sep_piece_link, world.sep_piece_center,
+                    world.sep_piece_radius, world.sep_vertex_start, world.sep_vertices):
                 flags[w] = True
         if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
             return

@@ -85,8 +85,10 @@ def suspect_pairs_of_state(q: FloatArray, world: LaneWorld, object_flags: BoolAr
                     break
             if self_flags[p]:
                 break
-        if self_flags[p] and pair_separated(0, p, la, lb, frames, link_joint, world.sep_pair_start, world.sep_owner,
-                                            world.sep_plane, world.sep_vertex_start, world.sep_vertices):
+        if self_flags[p] and pair_separated(
+                0, p, frames, link_joint, world.sep_pair_whole, world.sep_pair_range, world.sep_sub_piece,
+                world.sep_sub_start, world.sep_side, world.sep_plane, world.sep_piece_link, world.sep_piece_center, world.sep_piece_radius,
+                world.sep_vertex_start, world.sep_vertices):
             self_flags[p] = False
 
 
