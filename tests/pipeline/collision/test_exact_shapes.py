@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from robonav.pipeline.collision.fcl_shapes import link_shape_geometry
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.evaluation.mesh_check import MeshCollisionChecker
 from robonav.pipeline.robot.config import RobotConfig
@@ -74,3 +75,14 @@ def test_an_obstacle_in_the_pocket_of_an_l_shaped_link_is_free(tmp_path: Path, b
     world._pose(away)
     assert world._collide(world._posed_obj(0, padded=False), world._object_fcl[0])
     assert not MeshCollisionChecker(robot, [pocket]).in_collision(away)
+
+
+def test_exact_geometry_is_built_once_per_shape(tmp_path: Path) -> None:
+    robot = _ell_robot(tmp_path)
+    shape = robot.link_collision_shapes["ell"][0]
+    first = link_shape_geometry(shape)
+    assert link_shape_geometry(shape) is first
+    # Two worlds confirm contacts on the same BVH, and both still answer right.
+    worlds = [CollisionWorld(robot, padding_m=0.0) for _ in range(2)]
+    for world in worlds:
+        assert world.in_collision(np.array([0.0, -0.12])) and not world.in_collision(np.array([0.0, 0.0]))
