@@ -45,7 +45,8 @@ from robonav.pipeline.types import FloatArray
 _MAX_GRID_CELLS = 60_000_000
 _PLANE_FIELDS = (("pair_whole", "pair_whole"), ("pair_range", "pair_range"), ("sub_piece", "sub_piece"), ("sub_start", "sub_start"), ("side", "side"),
                  ("plane", "plane_joint"), ("piece_link", "piece_link"), ("piece_center", "piece_center_joint"),
-                 ("piece_radius", "piece_radius"), ("vertex_start", "vertex_start"), ("vertices", "vertices_joint"))
+                 ("piece_radius", "piece_radius"), ("vertex_start", "vertex_start"), ("vertices", "vertices_joint"),
+                 ("link_whole", "link_whole"))
 
 
 class SphereBroadPhase:
@@ -86,6 +87,9 @@ class SphereBroadPhase:
         self._centers_link = np.array(model.centers_link_m, dtype=np.float64, order="C")
         self._radii_self = np.array(model.radii_m, dtype=np.float64)
         self._radii_world = self._radii_self + growth[model.shape_index]
+        # How far the padded hulls FCL uses reach beyond a link's own (separating_planes' box test).
+        self._link_growth = np.array([max((growth[s] for s in np.flatnonzero(np.array([sh.link for sh in shapes]) == link)),
+                                          default=0.0) for link in links], dtype=np.float64)
         self._sphere_link = np.array(model.link_index, dtype=np.int64)
         n_links = len(links)
         starts = np.searchsorted(self._sphere_link, np.arange(n_links + 1))
@@ -118,7 +122,7 @@ class SphereBroadPhase:
                              if self_pair_tables else _no_pair_tables(self._self_pairs.shape[0]))
         self._planes = (cached_separating_planes(robot, self._kin, self._centers_link, self._radii_self, self._link_start,
                                                  self._self_pairs)
-                        if separating_planes else SeparatingPlanes.none(self._self_pairs.shape[0]))
+                        if separating_planes else SeparatingPlanes.none(self._self_pairs.shape[0], n_links))
         # Scratch buffers (no allocation per call).
         dof = robot.dof
         self._lane_scratch = dict(
@@ -318,6 +322,7 @@ class SphereBroadPhase:
             joint_from_link_translation=self._kin.joint_from_link_translation_m, pair_offset=tables.offset,
             pair_slot=tables.slot, pair_low=tables.low, pair_step=tables.step, pair_count=tables.count,
             pair_gap=tables.gap_m, **{f"sep_{name}": getattr(self._planes, field) for name, field in _PLANE_FIELDS},
+            sep_link_growth=self._link_growth,
             obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,
             obj_translation=self._obj_translation, obj_param=self._obj_param, obj_bound=self._obj_bound,
             has_grid=self._has_grid, grid=layer.field, grid_origin=layer.origin, grid_voxel=layer.voxel,

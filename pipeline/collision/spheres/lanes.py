@@ -35,7 +35,7 @@ from robonav.pipeline.collision.spheres.kernels import (
     voxel_distance,
 )
 from robonav.pipeline.collision.spheres.self_pair_tables import ROUNDING_GUARD_M
-from robonav.pipeline.collision.spheres.separating_planes import pair_separated
+from robonav.pipeline.collision.spheres.separating_planes import link_outside_box, pair_separated
 from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes
 from robonav.pipeline.types import BoolArray, FloatArray, IntArray
 
@@ -55,7 +55,7 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "pair_offset", "pair_slot", "pair_low", "pair_step", "pair_count", "pair_gap",
     # planes that separate self pairs whose spheres overlap (`separating_planes`)
     "sep_pair_whole", "sep_pair_range", "sep_sub_piece", "sep_sub_start", "sep_side", "sep_plane", "sep_piece_link",
-    "sep_piece_center", "sep_piece_radius", "sep_vertex_start", "sep_vertices",
+    "sep_piece_center", "sep_piece_radius", "sep_vertex_start", "sep_vertices", "sep_link_whole", "sep_link_growth",
     # scene primitives
     "obj_kind", "obj_rotation", "obj_translation", "obj_param", "obj_bound",
     # occupied voxels: distance field, the occupied cells (maybe on a finer grid) and the clearance kept from them
@@ -280,10 +280,18 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
             if not _any_within(lanes, distance, bound_world[li]):
                 continue
             _ensure_placed(lanes, li, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
+            for w in range(lanes):
+                pair_near[w] = False
             for s in range(link_start[li], link_start[li + 1]):
                 object_distance_lanes(lanes, sphere_lanes, s, k, obj_kind, obj_rotation, obj_translation, obj_param,
                                        distance)
-                _flag_within(lanes, distance, radii_world[s] + CONTACT_EPS_M, flags)
+                _flag_within(lanes, distance, radii_world[s] + CONTACT_EPS_M, pair_near)
+            for w in range(lanes):
+                # A box face with the whole (padded) link hull beyond it clears what the spheres flag.
+                if pair_near[w] and not flags[w] and not (obj_kind[k] == BOX and link_outside_box(
+                        w, li, k, frames, link_joint, world.sep_link_whole, world.sep_vertex_start, world.sep_vertices,
+                        obj_rotation, obj_translation, obj_param, world.sep_link_growth[li])):
+                    flags[w] = True
             if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
                 return
         if has_grid:

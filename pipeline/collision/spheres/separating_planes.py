@@ -74,6 +74,8 @@ class SeparatingPlanes:
         piece_radius: (K,) bounding sphere radii [m].
         vertex_start: (K + 1,) vertices of piece k are rows vertex_start[k]:vertex_start[k + 1].
         vertices_joint: (V, 3) piece vertices in their link's joint frame [m].
+        link_whole: (L,) the piece that is a whole link's polytope (tested against scene boxes),
+            -1 for none.
     """
 
     pair_whole: IntArray
@@ -87,14 +89,16 @@ class SeparatingPlanes:
     piece_radius: FloatArray
     vertex_start: IntArray
     vertices_joint: FloatArray
+    link_whole: IntArray
 
     @staticmethod
-    def none(n_pairs: int) -> SeparatingPlanes:
+    def none(n_pairs: int, n_links: int) -> SeparatingPlanes:
         ints = np.zeros(0, dtype=np.int64)
         return SeparatingPlanes(np.full(n_pairs, -1, dtype=np.int64), np.zeros((n_pairs, 2), dtype=np.int64),
                                 np.zeros((0, 2), dtype=np.int64),
                                 np.zeros(1, dtype=np.int64), ints, np.zeros((0, 4)), ints, np.zeros((0, 3)),
-                                np.zeros(0), np.zeros(1, dtype=np.int64), np.zeros((0, 3)))
+                                np.zeros(0), np.zeros(1, dtype=np.int64), np.zeros((0, 3)),
+                                np.full(n_links, -1, dtype=np.int64))
 
 
 def link_polytope(vertices_m: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -215,7 +219,7 @@ def build_separating_planes(robot: RobotModel, kin: LinkKinematics, centers_link
         np.array(planes, dtype=np.float64).reshape(-1, 4), piece_link_arr,
         np.ascontiguousarray(np.array([kin_points(kin, piece_link[k], centers[k][None])[0] for k in range(len(centers))]
                                       ).reshape(-1, 3)),
-        radii, vertex_start, np.ascontiguousarray(vertices))
+        radii, vertex_start, np.ascontiguousarray(vertices), np.array(whole, dtype=np.int64))
 
 
 def _piece_planes(polytopes: list[tuple[FloatArray, FloatArray]], shapes: list[fcl.CollisionObject],
@@ -369,5 +373,33 @@ def pair_separated(w: int, p: int, frames: FloatArray, link_joint: IntArray, pai
     for s in range(pair_range[p, 0], pair_range[p, 1]):
         if not _pieces_apart(w, s, frames, link_joint, sub_piece, sub_start, side, plane_joint, piece_link,
                              piece_center, piece_radius, vertex_start, vertices_joint):
+            return False
+    return True
+
+
+@nb.njit(cache=True, inline="always")
+def link_outside_box(w: int, li: int, k: int, frames: FloatArray, link_joint: IntArray, link_whole: IntArray,
+                     vertex_start: IntArray, vertices_joint: FloatArray, obj_rotation: FloatArray,
+                     obj_translation: FloatArray, obj_param: FloatArray, margin: float) -> bool:  # pragma: no cover
+    """Whether every vertex of link li's polytope lies beyond one face of box k by more than
+    `margin` in lane w (a face plane of the box then separates them: no sphere test needed)."""
+    piece = link_whole[li]
+    if piece < 0:
+        return False
+    j = link_joint[li]
+    outside = np.ones(6, dtype=np.bool_)
+    for v in range(vertex_start[piece], vertex_start[piece + 1]):
+        px, py, pz = vertices_joint[v, 0], vertices_joint[v, 1], vertices_joint[v, 2]
+        dx = frames[j, 9, w] + frames[j, 0, w] * px + frames[j, 1, w] * py + frames[j, 2, w] * pz - obj_translation[k, 0]
+        dy = frames[j, 10, w] + frames[j, 3, w] * px + frames[j, 4, w] * py + frames[j, 5, w] * pz - obj_translation[k, 1]
+        dz = frames[j, 11, w] + frames[j, 6, w] * px + frames[j, 7, w] * py + frames[j, 8, w] * pz - obj_translation[k, 2]
+        some = False
+        for a in range(3):
+            u = obj_rotation[k, 0, a] * dx + obj_rotation[k, 1, a] * dy + obj_rotation[k, 2, a] * dz
+            limit = obj_param[k, a] + margin + GUARD_M
+            outside[2 * a] &= u > limit
+            outside[2 * a + 1] &= u < -limit
+            some |= outside[2 * a] | outside[2 * a + 1]
+        if not some:
             return False
     return True

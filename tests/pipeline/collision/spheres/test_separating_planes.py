@@ -11,6 +11,7 @@ from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
 from robonav.pipeline.collision.spheres.separating_planes import PIECES, link_pieces, link_polytope
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.transforms import transform_points
 from robonav.services.config import load_robot_file
 
@@ -84,11 +85,44 @@ def test_planes_clear_pairs_only_where_the_hulls_are_apart(ur5: RobotModel) -> N
     assert cleared.get(("base_link", "upper_arm_link"), 0) >= 50, cleared
 
 
-def test_world_answers_are_the_same_with_planes(ur5: RobotModel) -> None:
-    fast, exact = CollisionWorld(ur5, padding_m=0.0), CollisionWorld(ur5, padding_m=0.0, broad_phase=False)
+@pytest.mark.parametrize("padding_m", [0.0, 0.02])
+def test_world_answers_are_the_same_with_planes(ur5: RobotModel, padding_m: float) -> None:
+    fast, exact = CollisionWorld(ur5, padding_m=padding_m), CollisionWorld(ur5, padding_m=padding_m, broad_phase=False)
+    # Boards around the arm (its base stands 0.91 m above the world origin), one turned.
+    turned = (0.0, 0.0, float(np.sin(0.3)), float(np.cos(0.3)))
+    boards = [SceneObject("table", "box", (0.0, 0.6, 0.8), size_m=(1.2, 0.6, 0.04)),
+              SceneObject("wall", "box", (0.55, 0.0, 1.2), turned, size_m=(0.04, 1.0, 0.8)),
+              SceneObject("post", "cylinder", (-0.4, -0.4, 1.1), radius_m=0.05, length_m=0.5)]
+    fast.set_objects(boards)
+    exact.set_objects(boards)
     rng = np.random.default_rng(11)
     states = rng.uniform(ur5.lower_limits_rad, ur5.upper_limits_rad, size=(120, ur5.dof))
     answers = [fast.collisions(q) for q in states]
     assert answers == [exact.collisions(q) for q in states]
     assert 0 < sum(bool(a) for a in answers) < len(states)
+    assert any(name in ("table", "wall") for a in answers for _, name in a)
     assert fast.sphere_self_overflag() < 0.75, "the sphere-first search stays available for the UR5"
+
+
+def test_a_box_face_clears_a_link_its_spheres_reach(ur5: RobotModel) -> None:
+    home = ur5.home_position_rad
+    world = CollisionWorld(ur5, padding_m=0.0)
+    spheres = world._broad_phase
+    # A board just beyond the hull's lowest point below the wrist: the spheres reach past the hull.
+    poses = ur5.link_pose_stack(home)
+    links = list(ur5.collision_link_names)
+    li = links.index("wrist_2_link")
+    hull = ur5.link_collision_shapes["wrist_2_link"][0].hull_vertices @ poses[li, :3, :3].T + poses[li, :3, 3]
+    bottom = float(hull[:, 2].min())
+    center = hull.mean(axis=0)
+    flagged_by_spheres = 0
+    for gap in (0.002, 0.004, 0.006):
+        board = SceneObject("board", "box", (center[0], center[1], bottom - gap - 0.01), size_m=(0.3, 0.3, 0.02))
+        world.set_objects([board])
+        objects = spheres.suspect_pairs(home)[0]
+        assert not objects[li, 0], gap
+        no_box_test = SphereBroadPhase(ur5, sphere_model=spheres.sphere_model, separating_planes=False)
+        no_box_test.set_objects([board])
+        flagged_by_spheres += bool(no_box_test.suspect_pairs(home)[0][li, 0])
+        assert ("wrist_2_link", "board") not in world.collisions(home)
+    assert flagged_by_spheres == 3, "the premise: the spheres alone reach the board"
