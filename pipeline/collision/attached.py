@@ -1,21 +1,26 @@
 """Objects fixed to robot links: what is attached where, and where it is for a robot state.
 
-`CollisionWorld` holds one `Attachments` and checks each attached object like a link: padded
-against the world, bare against the other links, never against `link` and its `touch_links`.
+`CollisionWorld` holds one `Attachments` and checks each attached object like a link
+(`AttachedChecks`): padded against the world, bare against the other links, never against `link`
+and its `touch_links`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import fcl
 import numpy as np
 
-from robonav.pipeline.collision.fcl_shapes import object_geometry, world_aabb
+from robonav.pipeline.collision.fcl_shapes import OCCUPANCY, object_geometry, world_aabb
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import BoolArray, FloatArray
+
+if TYPE_CHECKING:  # the world these methods run on
+    from robonav.pipeline.collision.world import CollisionWorld
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,3 +139,37 @@ class Attachments:
             center, half = world_aabb(attached.info.object, world_from_object)
             out.append((attached, center, half))
         return out
+
+
+class AttachedChecks:
+    """The attached objects' collision checks of `CollisionWorld`."""
+
+    def _check_attached(self: CollisionWorld, q: FloatArray, centers: FloatArray, hits: list[tuple[str, str]], *, first_only: bool) -> None:
+        """Appends (attached object, link / object / 'occupancy') pairs that touch; needs `_pose(q)` first."""
+        posed = self._attached.pose(q, self._world_from_shape_link)
+        for attached, center, half in posed:
+            name = attached.info.name
+            candidates: list[tuple[str, fcl.CollisionObject, fcl.CollisionObject]] = []
+            if self._object_names:
+                near = np.all(np.abs(self._object_center - center) <= self._object_half + half + self._padding_m, axis=1)
+                candidates += [(self._object_names[k], attached.padded_obj, self._object_fcl[k]) for k in np.flatnonzero(near)]
+            if self._octree is not None:
+                candidates.append((OCCUPANCY, attached.padded_obj, self._octree))
+            offsets = centers - center
+            radius = float(np.linalg.norm(half))
+            near_shapes = (np.einsum("si,si->s", offsets, offsets) <= (self._radii + radius) ** 2) & attached.checked_shapes
+            candidates += [(self._links[s], attached.obj, self._posed_obj(int(s), padded=False)) for s in np.flatnonzero(near_shapes)]
+            for other, a, b in candidates:
+                if (name, other) not in hits and self._collide(a, b):
+                    hits.append((name, other))
+                    if first_only:
+                        return
+        for i, (first, center_a, half_a) in enumerate(posed):
+            for second, center_b, half_b in posed[i + 1:]:
+                # Two objects on one link keep their relative pose: like adjacent links, never checked.
+                if first.info.link == second.info.link or np.any(np.abs(center_a - center_b) > half_a + half_b):
+                    continue
+                if self._collide(first.obj, second.obj):
+                    hits.append((first.info.name, second.info.name))
+                    if first_only:
+                        return

@@ -8,6 +8,8 @@ the sphere broad phase.
 from __future__ import annotations
 
 import math
+import weakref
+from collections.abc import Sequence
 
 import fcl
 import numpy as np
@@ -15,6 +17,9 @@ import numpy as np
 from robonav.pipeline.robot.link_geometry import LinkShape
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray, IntArray
+
+OCCUPANCY = "occupancy"
+"""Name reported for contacts with the occupancy octree."""
 
 
 def occupied_leaf_centers(octomap_binary: bytes, resolution_m: float) -> FloatArray:
@@ -118,22 +123,44 @@ def sphere_box_distance(
 class ExactLinkShapes:
     """Link shapes as their exact FCL geometry (triangle-mesh BVHs, primitives), built on first use.
 
-    Self-collision confirms a contact of two link HULLS on these: a hull fills a link's concave
-    pockets, and two such links sitting close (the UR5's forearm and wrist, its base and upper arm)
-    touched as hulls in a quarter of random states where their meshes stay apart, which made
-    valid starts and goals invalid. Only pairs whose hulls touch reach here, so the mesh test
-    runs on few states (spheres and hulls clear the rest).
+    A contact of a link HULL is confirmed on these: a hull fills a link's concave pockets, and
+    two such links sitting close (the UR5's forearm and wrist, its base and upper arm) touched
+    as hulls in a quarter of random states where their meshes stay apart, which made valid
+    starts and goals invalid; so did the UR5 forearm's hull against a table its mesh passes
+    under (MotionBenchMaker's states are valid for the meshes). Only pairs whose hulls touch
+    reach here, so the mesh test runs on few states (spheres and hulls clear the rest).
+
+    Against the world with a padding, the exact shape meets the primitive grown by the padding
+    (a box, cylinder, sphere or capsule grown so contains every point that near the original);
+    a mesh object cannot be grown, so there the padded hull's contact stands (`padded_objects`).
     """
 
     def __init__(self, shapes: list[LinkShape]) -> None:
         self._shapes = shapes
         self._objs: dict[int, fcl.CollisionObject] = {}
         self._request = fcl.CollisionRequest()
+        self.padded_objects: list[fcl.CollisionObject | None] = []
+        """Scene objects grown by the padding, `CollisionWorld.set_objects` order; None: no exact
+        confirmation of a padded contact with it (a mesh object)."""
+
+    def set_objects(self, objects: Sequence[SceneObject], padding_m: float) -> None:
+        """The scene objects (world frame) padded contacts are confirmed against."""
+        self.padded_objects = [
+            None if obj.type == "mesh" and padding_m > 0 else fcl.CollisionObject(
+                object_geometry(obj, padding_m), fcl.Transform(obj.world_from_object[:3, :3], obj.world_from_object[:3, 3]))
+            for obj in objects]
 
     def collide(self, a: int, b: int, world_from_link_a: FloatArray, world_from_link_b: FloatArray) -> bool:
         """Do shapes `a` and `b` (flat shape indices) touch with their links at these (4, 4) poses?"""
         obj_a, obj_b = self._posed(a, world_from_link_a), self._posed(b, world_from_link_b)
         return fcl.collide(obj_a, obj_b, self._request, fcl.CollisionResult()) > 0
+
+    def collide_with(self, s: int, world_from_link: FloatArray, other: fcl.CollisionObject | None) -> bool:
+        """Does shape `s` with its link at (4, 4) `world_from_link` touch `other` (a posed scene
+        object or octree)? None stands for an object no exact test applies to: True."""
+        if other is None:
+            return True
+        return fcl.collide(self._posed(s, world_from_link), other, self._request, fcl.CollisionResult()) > 0
 
     def _posed(self, s: int, world_from_link: FloatArray) -> fcl.CollisionObject:
         obj = self._objs.get(s)
@@ -145,8 +172,22 @@ class ExactLinkShapes:
         return obj
 
 
+_geometry_of: weakref.WeakKeyDictionary[LinkShape, tuple[fcl.CollisionGeometry, FloatArray, float]] = \
+    weakref.WeakKeyDictionary()
+
+
 def link_shape_geometry(shape: LinkShape) -> tuple[fcl.CollisionGeometry, FloatArray, float]:
-    """FCL geometry of a link shape in its SHAPE frame, with a bounding sphere (center (3,), radius) there [m]."""
+    """FCL geometry of a link shape in its SHAPE frame, with a bounding sphere (center (3,), radius) there [m].
+
+    Built once per shape and shared: a mesh's BVH takes tens of milliseconds (the UR5's gripper
+    meshes), and every planning world of a robot confirms contacts on the same shapes."""
+    cached = _geometry_of.get(shape)
+    if cached is None:
+        cached = _geometry_of[shape] = _link_shape_geometry(shape)
+    return cached
+
+
+def _link_shape_geometry(shape: LinkShape) -> tuple[fcl.CollisionGeometry, FloatArray, float]:
     if shape.kind == "mesh":
         if shape.vertices is None or shape.triangles is None:
             raise ValueError(f"link '{shape.link}': mesh shape carries no triangles")

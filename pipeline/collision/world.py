@@ -2,9 +2,9 @@
 
 Every robot shape is an `fcl.Convex` of its convex hull (GJK on a hull is much faster than on
 the triangle mesh). A hull contains its mesh, so this is conservative: it can report contact in
-a concave pocket of a link where the mesh itself is free; a self pair whose hulls touch is therefore
-confirmed on the exact shapes (`fcl_shapes.ExactLinkShapes`). Robot-vs-world checks use hulls grown
-by `padding_m` (see `link_geometry.grow_hull`); self-collision and clearance use the ungrown hulls.
+a concave pocket of a link where the mesh itself is free; a contact of hulls is therefore confirmed
+on the exact shapes (`fcl_shapes.ExactLinkShapes`). Robot-vs-world checks use hulls grown by
+`padding_m` (see `link_geometry.grow_hull`); self-collision and clearance use the ungrown hulls.
 
 Each check first rejects pairs whose bounding spheres cannot touch (numpy), then runs FCL per
 pair in Python. Against FCL's DynamicAABBTree managers (Panda, 6 boxes and a 53k-leaf octree)
@@ -22,10 +22,11 @@ import fcl
 import numpy as np
 import numpy.typing as npt
 
-from robonav.pipeline.collision.attached import AttachedObject, Attachments
+from robonav.pipeline.collision.attached import AttachedChecks, AttachedObject, Attachments
 from robonav.pipeline.collision.clearance import ClearanceQueries
 from robonav.pipeline.collision.edges import bisection_order, step_count
 from robonav.pipeline.collision.fcl_shapes import (
+    OCCUPANCY,
     ExactLinkShapes,
     convex_shape,
     object_geometry,
@@ -41,16 +42,13 @@ from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
 
-OCCUPANCY = "occupancy"
-"""Name reported for contacts with the occupancy octree."""
 
-
-class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance):
+class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance, AttachedChecks):
     """A robot model plus the obstacles it must avoid, all in the robot base (world) frame.
 
     Not thread-safe: FCL objects are re-posed on every query. Mixed in: the distance queries
     (`clearance.py`), the sphere-first checks (`sphere_first.py`), the map's clearance and its
-    allowance near a query's ends (`surface_allowance.py`).
+    allowance near a query's ends (`surface_allowance.py`), the attached objects' checks (`attached.py`).
     """
 
     def __init__(self, robot: RobotModel, padding_m: float | None = None, *, broad_phase: bool = True) -> None:
@@ -228,6 +226,7 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance):
             centers.append(center)
             halves.append(half)
         self._object_names, self._object_fcl = names, fcl_objs
+        self._exact.set_objects(objects, self._padding_m)
         self._object_center = np.array(centers).reshape(-1, 3)
         self._object_half = np.array(halves).reshape(-1, 3)
         if self._broad_phase is not None:
@@ -340,36 +339,6 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance):
         """
         return self._map_aware_check(self._robot.validate_q(q), first_only=False, padded=padded)
 
-    def _check_attached(self, q: FloatArray, centers: FloatArray, hits: list[tuple[str, str]], *, first_only: bool) -> None:
-        """Appends (attached object, link / object / 'occupancy') pairs that touch; needs `_pose(q)` first."""
-        posed = self._attached.pose(q, self._world_from_shape_link)
-        for attached, center, half in posed:
-            name = attached.info.name
-            candidates: list[tuple[str, fcl.CollisionObject, fcl.CollisionObject]] = []
-            if self._object_names:
-                near = np.all(np.abs(self._object_center - center) <= self._object_half + half + self._padding_m, axis=1)
-                candidates += [(self._object_names[k], attached.padded_obj, self._object_fcl[k]) for k in np.flatnonzero(near)]
-            if self._octree is not None:
-                candidates.append((OCCUPANCY, attached.padded_obj, self._octree))
-            offsets = centers - center
-            radius = float(np.linalg.norm(half))
-            near_shapes = (np.einsum("si,si->s", offsets, offsets) <= (self._radii + radius) ** 2) & attached.checked_shapes
-            candidates += [(self._links[s], attached.obj, self._posed_obj(int(s), padded=False)) for s in np.flatnonzero(near_shapes)]
-            for other, a, b in candidates:
-                if (name, other) not in hits and self._collide(a, b):
-                    hits.append((name, other))
-                    if first_only:
-                        return
-        for i, (first, center_a, half_a) in enumerate(posed):
-            for second, center_b, half_b in posed[i + 1:]:
-                # Two objects on one link keep their relative pose: like adjacent links, never checked.
-                if first.info.link == second.info.link or np.any(np.abs(center_a - center_b) > half_a + half_b):
-                    continue
-                if self._collide(first.obj, second.obj):
-                    hits.append((first.info.name, second.info.name))
-                    if first_only:
-                        return
-
     def motion_valid(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float) -> bool:
         """True when every state on the straight joint-space segment from `q_a` to `q_b` is free.
 
@@ -447,18 +416,23 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance):
         near_objects, near_octree, near_self, centers = self._near_pairs(q, tier)
         octree = self._surface_octree if tier == 0 and self._surface_octree is not None else self._octree
         hits: list[tuple[str, str]] = []
-        links = self._links
+        links, poses, exact = self._links, self._world_from_shape_link, self._exact
+        # A hull's contact is confirmed on the link's exact shape (`ExactLinkShapes`).
+        grown = padded and self._padding_m > 0
         if near_objects is not None:
+            exact_objects = exact.padded_objects if grown else self._object_fcl
             for s, k in zip(*np.nonzero(near_objects)):
                 pair = (links[s], self._object_names[k])
-                if pair not in hits and self._collide(self._posed_obj(int(s), padded=padded), self._object_fcl[k]):
+                if pair not in hits and self._collide(self._posed_obj(int(s), padded=padded), self._object_fcl[k]) \
+                        and exact.collide_with(int(s), poses[s], exact_objects[k]):
                     hits.append(pair)
                     if first_only:
                         return hits
         if octree is not None:
             for s in np.flatnonzero(near_octree):
                 pair = (links[s], OCCUPANCY)
-                if pair not in hits and self._collide(self._posed_obj(int(s), padded=padded), octree):
+                if pair not in hits and self._collide(self._posed_obj(int(s), padded=padded), octree) \
+                        and exact.collide_with(int(s), poses[s], None if grown else octree):
                     hits.append(pair)
                     if first_only:
                         return hits
@@ -467,7 +441,7 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance):
             if pair in hits:
                 continue
             if self._collide(self._posed_obj(int(a), padded=False), self._posed_obj(int(b), padded=False)) \
-                    and self._exact.collide(int(a), int(b), *self._world_from_shape_link[[a, b]]):
+                    and exact.collide(int(a), int(b), poses[a], poses[b]):
                 hits.append(pair)
                 if first_only:
                     return hits

@@ -30,10 +30,11 @@ import fcl
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE
+from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CYLINDER, SPHERE
 from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld, edge_suspect_steps, state_suspect_lanes
 from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, suspect_pairs_of_state
 from robonav.pipeline.collision.spheres.self_pair_tables import SelfPairTables, build_self_pair_tables
+from robonav.pipeline.collision.spheres.separating_planes import SeparatingPlanes, cached_separating_planes
 from robonav.pipeline.collision.spheres.sphere_model import RobotSphereModel, robot_sphere_model
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
 from robonav.pipeline.robot.link_geometry import grow_hull
@@ -42,6 +43,10 @@ from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
 
 _MAX_GRID_CELLS = 60_000_000
+_PLANE_FIELDS = (("pair_whole", "pair_whole"), ("pair_range", "pair_range"), ("sub_piece", "sub_piece"), ("sub_start", "sub_start"), ("side", "side"),
+                 ("plane", "plane_joint"), ("piece_link", "piece_link"), ("piece_center", "piece_center_joint"),
+                 ("piece_radius", "piece_radius"), ("vertex_start", "vertex_start"), ("vertices", "vertices_joint"),
+                 ("link_whole", "link_whole"))
 
 
 class SphereBroadPhase:
@@ -52,7 +57,8 @@ class SphereBroadPhase:
 
     def __init__(self, robot: RobotModel, *, padding_m: float = 0.0,
                  self_pairs: Sequence[tuple[str, str]] | None = None,
-                 sphere_model: RobotSphereModel | None = None, self_pair_tables: bool = True) -> None:
+                 sphere_model: RobotSphereModel | None = None, self_pair_tables: bool = True,
+                 separating_planes: bool = True) -> None:
         """Build spheres, kinematics and the self-collision pair list.
 
         Args:
@@ -64,6 +70,8 @@ class SphereBroadPhase:
             self_pair_tables: Skip self pairs where a precomputed gap bound proves their spheres
                 apart (`self_pair_tables`; the answers are the same either way, so False is
                 for testing that).
+            separating_planes: Clear self pairs whose spheres touch where a plane separates
+                their hulls (`separating_planes`; False flags them, for testing that).
         """
         if not (math.isfinite(padding_m) and padding_m >= 0):
             raise ValueError(f"padding_m must be finite and >= 0, got {padding_m}")
@@ -79,6 +87,9 @@ class SphereBroadPhase:
         self._centers_link = np.array(model.centers_link_m, dtype=np.float64, order="C")
         self._radii_self = np.array(model.radii_m, dtype=np.float64)
         self._radii_world = self._radii_self + growth[model.shape_index]
+        # How far the padded hulls FCL uses reach beyond a link's own (separating_planes' box test).
+        self._link_growth = np.array([max((growth[s] for s in np.flatnonzero(np.array([sh.link for sh in shapes]) == link)),
+                                          default=0.0) for link in links], dtype=np.float64)
         self._sphere_link = np.array(model.link_index, dtype=np.int64)
         n_links = len(links)
         starts = np.searchsorted(self._sphere_link, np.arange(n_links + 1))
@@ -109,13 +120,17 @@ class SphereBroadPhase:
         self._pair_tables = (_cached_pair_tables(robot, self._kin, self._centers_joint, self._radii_self,
                                                  self._link_start, self._self_pairs)
                              if self_pair_tables else _no_pair_tables(self._self_pairs.shape[0]))
+        self._planes = (cached_separating_planes(robot, self._kin, self._centers_link, self._radii_self, self._link_start,
+                                                 self._self_pairs)
+                        if separating_planes else SeparatingPlanes.none(self._self_pairs.shape[0], n_links))
         # Scratch buffers (no allocation per call).
         dof = robot.dof
         self._lane_scratch = dict(
             cos_lanes=np.zeros((dof, LANES)), sin_lanes=np.zeros((dof, LANES)), q_lanes=np.zeros((dof, LANES)),
             flags=np.zeros(LANES, dtype=np.bool_), frames=self._kin.new_lane_frames(LANES),
             sphere_lanes=np.zeros((self._centers_link.shape[0], 3, LANES)), bound_lanes=np.zeros((n_links, 3, LANES)),
-            placed=np.zeros(n_links, dtype=np.bool_), near=np.zeros(LANES, dtype=np.bool_), distance=np.zeros(LANES))
+            placed=np.zeros(n_links, dtype=np.bool_), near=np.zeros(LANES, dtype=np.bool_), distance=np.zeros(LANES),
+            pair_near=np.zeros(LANES, dtype=np.bool_))
         self._step_buffer = np.zeros(1, dtype=np.int64)
         self._queue = np.zeros((1, 2), dtype=np.int64)
         self.clear_objects()
@@ -306,7 +321,9 @@ class SphereBroadPhase:
             link_joint=self._link_joint, joint_from_link_rotation=self._kin.joint_from_link_rotation,
             joint_from_link_translation=self._kin.joint_from_link_translation_m, pair_offset=tables.offset,
             pair_slot=tables.slot, pair_low=tables.low, pair_step=tables.step, pair_count=tables.count,
-            pair_gap=tables.gap_m, obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,
+            pair_gap=tables.gap_m, **{f"sep_{name}": getattr(self._planes, field) for name, field in _PLANE_FIELDS},
+            sep_link_growth=self._link_growth,
+            obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,
             obj_translation=self._obj_translation, obj_param=self._obj_param, obj_bound=self._obj_bound,
             has_grid=self._has_grid, grid=layer.field, grid_origin=layer.origin, grid_voxel=layer.voxel,
             grid_box=layer.box, occupied=layer.occupied, fine=fine.occupied, fine_origin=fine.origin,
@@ -353,19 +370,9 @@ class SphereBroadPhase:
         return self._kin.link_pose_stack(q)
 
     def self_suspect(self, q: FloatArray) -> bool:
-        """True if spheres of a self-collision pair touch at `q` (dof,) (the world ignored).
-
-        Numpy, not compiled: for occasional probes (`CollisionWorld.sphere_self_overflag`)."""
-        poses = self._robot.link_pose_stack(q)
-        links = self._sphere_link
-        world = np.einsum("sij,sj->si", poses[links, :3, :3], self._centers_link) + poses[links, :3, 3]
-        for la, lb in self._self_pairs:
-            a = slice(self._link_start[la], self._link_start[la + 1])
-            b = slice(self._link_start[lb], self._link_start[lb + 1])
-            gap = np.linalg.norm(world[a, None, :] - world[None, b, :], axis=2)
-            if np.any(gap <= self._radii_self[a, None] + self._radii_self[None, b] + CONTACT_EPS_M):
-                return True
-        return False
+        """True if spheres of a self-collision pair touch at `q` (dof,) and no separating plane
+        clears it (the world ignored): for probes (`CollisionWorld.sphere_self_overflag`)."""
+        return bool(self.suspect_pairs(q)[2].any())
 
     def edge_suspects(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float, *,
                       first_only: bool = False, tier: int = -1) -> tuple[np.ndarray, int]:

@@ -35,6 +35,7 @@ from robonav.pipeline.collision.spheres.kernels import (
     voxel_distance,
 )
 from robonav.pipeline.collision.spheres.self_pair_tables import ROUNDING_GUARD_M
+from robonav.pipeline.collision.spheres.separating_planes import link_outside_box, pair_separated
 from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes
 from robonav.pipeline.types import BoolArray, FloatArray, IntArray
 
@@ -52,6 +53,9 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "self_pairs", "link_joint", "joint_from_link_rotation", "joint_from_link_translation",
     # gap bounds of self pairs few joints apart (`self_pair_tables`)
     "pair_offset", "pair_slot", "pair_low", "pair_step", "pair_count", "pair_gap",
+    # planes that separate self pairs whose spheres overlap (`separating_planes`)
+    "sep_pair_whole", "sep_pair_range", "sep_sub_piece", "sep_sub_start", "sep_side", "sep_plane", "sep_piece_link",
+    "sep_piece_center", "sep_piece_radius", "sep_vertex_start", "sep_vertices", "sep_link_whole", "sep_link_growth",
     # scene primitives
     "obj_kind", "obj_rotation", "obj_translation", "obj_param", "obj_bound",
     # occupied voxels: distance field, the occupied cells (maybe on a finer grid) and the clearance kept from them
@@ -61,7 +65,7 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "att_center_joint", "att_radius", "att_radius_world", "att_joint", "att_skip",
     # scratch: lane inputs and outputs, frames, placed spheres
     "cos_lanes", "sin_lanes", "q_lanes", "flags", "frames", "sphere_lanes", "bound_lanes", "placed", "near",
-    "distance", "att_lanes",
+    "distance", "att_lanes", "pair_near",
 )
 """What the lane kernels read, as one object: a call from Python unboxes one reference (~0.6 us)
 instead of some 45 arrays (~3 us, more than a 16-state chunk of an edge costs)."""
@@ -251,6 +255,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     att_joint, att_skip = world.att_joint, world.att_skip
     pair_offset, pair_slot, pair_low, pair_step = world.pair_offset, world.pair_slot, world.pair_low, world.pair_step
     pair_count, pair_gap, q_lanes = world.pair_count, world.pair_gap, world.q_lanes
+    pair_near = world.pair_near
     forward_joints_lanes(lanes, world.cos_lanes, world.sin_lanes, world.q_lanes, world.parent, world.joint_type,
                          world.q_slot, world.coefficients, world.base_joint, world.joint_from_base, frames)
     n_links = link_start.shape[0] - 1
@@ -275,10 +280,18 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
             if not _any_within(lanes, distance, bound_world[li]):
                 continue
             _ensure_placed(lanes, li, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
+            for w in range(lanes):
+                pair_near[w] = False
             for s in range(link_start[li], link_start[li + 1]):
                 object_distance_lanes(lanes, sphere_lanes, s, k, obj_kind, obj_rotation, obj_translation, obj_param,
                                        distance)
-                _flag_within(lanes, distance, radii_world[s] + CONTACT_EPS_M, flags)
+                _flag_within(lanes, distance, radii_world[s] + CONTACT_EPS_M, pair_near)
+            for w in range(lanes):
+                # A box face with the whole (padded) link hull beyond it clears what the spheres flag.
+                if pair_near[w] and not flags[w] and not (obj_kind[k] == BOX and link_outside_box(
+                        w, li, k, frames, link_joint, world.sep_link_whole, world.sep_vertex_start, world.sep_vertices,
+                        obj_rotation, obj_translation, obj_param, world.sep_link_growth[li])):
+                    flags[w] = True
             if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
                 return
         if has_grid:
@@ -305,6 +318,9 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
             continue
         _ensure_placed(lanes, la, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
         _ensure_placed(lanes, lb, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
+        touching = False
+        for w in range(lanes):
+            pair_near[w] = False
         for sa in range(link_start[la], link_start[la + 1]):
             # Against the other link's bounding sphere first: most spheres of a pair whose
             # bounds overlap are far from the other link.
@@ -312,8 +328,18 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
                 continue
             for sb in range(link_start[lb], link_start[lb + 1]):
                 if points_within(lanes, sphere_lanes, sa, sphere_lanes, sb, radii_self[sa] + radii_self[sb], near):
+                    touching = True
                     for w in range(lanes):
-                        flags[w] |= near[w]
+                        pair_near[w] |= near[w]
+        if not touching:
+            continue
+        for w in range(lanes):
+            # A lane flagged already needs no proof; one a plane separates is clear of this pair.
+            if pair_near[w] and not flags[w] and not pair_separated(
+                    w, p, frames, link_joint, world.sep_pair_whole, world.sep_pair_range, world.sep_sub_piece,
+                    world.sep_sub_start, world.sep_side, world.sep_plane, world.sep_piece_link, world.sep_piece_center,
+                    world.sep_piece_radius, world.sep_vertex_start, world.sep_vertices):
+                flags[w] = True
         if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
             return
     # Attached spheres: against the world (padded) and the robot links they may not touch.

@@ -12,8 +12,9 @@ import math
 
 import numba as nb
 
-from robonav.pipeline.collision.spheres.kernels import CONTACT_EPS_M, touches_cells, voxel_distance
+from robonav.pipeline.collision.spheres.kernels import BOX, CONTACT_EPS_M, touches_cells, voxel_distance
 from robonav.pipeline.collision.spheres.lanes import LaneWorld, object_distance_lanes, place_lanes, points_within
+from robonav.pipeline.collision.spheres.separating_planes import link_outside_box, pair_separated
 from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes, link_pose_from_lane
 from robonav.pipeline.types import BoolArray, FloatArray
 
@@ -62,6 +63,10 @@ def suspect_pairs_of_state(q: FloatArray, world: LaneWorld, object_flags: BoolAr
                 if distance[0] <= radii_world[s] + CONTACT_EPS_M:
                     object_flags[li, k] = True
                     break
+            if object_flags[li, k] and obj_kind[k] == BOX and link_outside_box(
+                    0, li, k, frames, link_joint, world.sep_link_whole, world.sep_vertex_start, world.sep_vertices,
+                    obj_rotation, obj_translation, obj_param, world.sep_link_growth[li]):
+                object_flags[li, k] = False
         voxel_flags[li] = False
         if world.has_grid and voxel_distance(bound_lanes[li, 0, 0], bound_lanes[li, 1, 0], bound_lanes[li, 2, 0], grid,
                                              grid_origin, grid_voxel, grid_box) <= bound_world[li] + world.grid_clearance:
@@ -84,6 +89,11 @@ def suspect_pairs_of_state(q: FloatArray, world: LaneWorld, object_flags: BoolAr
                     break
             if self_flags[p]:
                 break
+        if self_flags[p] and pair_separated(
+                0, p, frames, link_joint, world.sep_pair_whole, world.sep_pair_range, world.sep_sub_piece,
+                world.sep_sub_start, world.sep_side, world.sep_plane, world.sep_piece_link, world.sep_piece_center, world.sep_piece_radius,
+                world.sep_vertex_start, world.sep_vertices):
+            self_flags[p] = False
 
 
 @nb.njit(cache=True)

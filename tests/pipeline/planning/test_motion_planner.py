@@ -8,6 +8,7 @@ import numpy as np
 import octomap
 import pytest
 
+from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.planning.ik import pose_error
@@ -89,9 +90,17 @@ def test_sphere_first_is_skipped_against_an_occupancy_map(setup) -> None:
 
 
 def test_sphere_first_is_skipped_when_self_collision_spheres_always_touch(setup) -> None:
-    planner, start, goal = setup  # every finger pair checked: their spheres touch in every state
-    assert planner.world.sphere_self_overflag() > 0.9
-    own = MotionPlanner(planner.robot, planner.world, dataclasses.replace(planner.config, sphere_first_share=1.0))
+    planner, start, goal = setup  # every finger pair checked: their spheres touch in every state...
+    assert planner.world.sphere_self_overflag() < 0.5, "... where separating planes clear them"
+    # Without the planes (a fresh robot: the overflag is measured once per robot) every state is suspect.
+    robot = RobotModel.from_config(planner.robot.config)
+    world = CollisionWorld(robot, padding_m=0.01)
+    world.set_objects([BLOCK])
+    world._broad_phase = SphereBroadPhase(robot, padding_m=0.01, self_pairs=world.self_collision_pairs,
+                                          separating_planes=False)
+    world._broad_phase.set_objects([BLOCK])
+    assert world.sphere_self_overflag() > 0.9
+    own = MotionPlanner(robot, world, dataclasses.replace(planner.config, sphere_first_share=1.0))
     outcome = own.plan(PlanProblem(start, goal, allowed_planning_time_s=5.0, seed=4))
     assert outcome.status is PlanStatus.SUCCESS and outcome.search == "exact"
 
