@@ -14,6 +14,8 @@ import numpy as np
 import numpy.typing as npt
 
 from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
+from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
@@ -204,3 +206,48 @@ def _translation(position_m: FloatArray) -> FloatArray:
     pose = np.eye(4)
     pose[:3, 3] = position_m
     return pose
+
+
+def goal_region(objects: tuple[SceneObject, ...] | list[SceneObject], workspace_min_m: npt.ArrayLike,
+                workspace_max_m: npt.ArrayLike, *, above_table_m: float = 0.05) -> tuple[FloatArray, FloatArray]:
+    """The box end-effector goals are drawn in: the perception workspace, from `above_table_m`
+    over the top of the object named `table` (if any) up. Returns (min (3,), max (3,)) [m]."""
+    top_z = max((o.position_m[2] + o.local_bounds_m[1][2] for o in objects if o.name == "table"), default=-np.inf)
+    low = np.array(workspace_min_m, dtype=np.float64)
+    low[2] = max(low[2], top_z + above_table_m)
+    return low, np.array(workspace_max_m, dtype=np.float64)
+
+
+def draw_goal_sequence(world: CollisionWorld, reference: MotionPlanner, rng: np.random.Generator, start: npt.ArrayLike,
+                       *, count: int, link: str, region_min_m: npt.ArrayLike, region_max_m: npt.ArrayLike,
+                       min_clearance_m: float, seed: int, draws: int = 20,
+                       planning_time_s: float = 2.0) -> list[FloatArray]:
+    """`count` goals visited in turn from `start`, each reachable from the one before.
+
+    Each goal is drawn as `sample_goal` does in `world` (padded by the caller to what a map
+    can add), preferring goals whose straight joint-space way from the previous one is blocked,
+    so the sequence needs detours; a goal counts only if the `reference` planner, which plans
+    in `world`, reaches it from the previous one within `planning_time_s`.
+
+    Raises:
+        ValueError: no reachable goal in `draws` draws for some position in the sequence.
+    """
+    goals: list[FloatArray] = []
+    previous = np.asarray(start, dtype=np.float64)
+    for index in range(count):
+        for draw in range(draws):
+            want_blocked: bool | None = True if draw < draws // 2 else None
+            sample = sample_goal(world, rng, previous, link=link, region_min_m=region_min_m, region_max_m=region_max_m,
+                                 min_clearance_m=min_clearance_m, want_blocked=want_blocked)
+            if sample is None:
+                continue
+            outcome = reference.plan(PlanProblem(start_rad=previous, goals_rad=sample.q,
+                                                 allowed_planning_time_s=planning_time_s, seed=seed + 100 * index + draw))
+            if outcome.status is PlanStatus.SUCCESS:
+                goals.append(sample.q)
+                previous = sample.q
+                break
+        else:
+            raise ValueError(f"no reachable goal {index} for link {link} in {draws} draws "
+                             f"(region {np.round(region_min_m, 3).tolist()} .. {np.round(region_max_m, 3).tolist()})")
+    return goals

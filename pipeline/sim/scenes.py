@@ -62,6 +62,8 @@ class ClutterConfig:
     """Smallest horizontal gap between the footprints of two objects [m]."""
     keep_clear_radius_m: float = 0.35
     """No object within this horizontal distance of the robot base axis [m]."""
+    base_xy_m: tuple[float, float] = (0.0, 0.0)
+    """Where the robot base axis stands, world frame [m] (a cell placed for another arm moves it)."""
 
     def __post_init__(self) -> None:
         require(all(s > 0 for s in self.table_size_m), f"clutter.table_size_m must be positive, got {self.table_size_m}")
@@ -142,7 +144,8 @@ class _Placer:
             return None
         for _ in range(attempts):
             x, y = cx + self.rng.uniform(-half_x, half_x), cy + self.rng.uniform(-half_y, half_y)
-            if math.hypot(x, y) < self.config.keep_clear_radius_m + radius_m:
+            base_x, base_y = self.config.base_xy_m
+            if math.hypot(x - base_x, y - base_y) < self.config.keep_clear_radius_m + radius_m:
                 continue
             if all(math.hypot(x - ox, y - oy) >= radius_m + r + self.config.gap_m for ox, oy, r in self.discs):
                 self.discs.append((x, y, radius_m))
@@ -180,7 +183,8 @@ def _shelf(config: ClutterConfig, rng: np.random.Generator, placer: _Placer, top
     xy = None
     for _ in range(30):
         cy = config.table_center_m[1] + float(rng.uniform(-1, 1)) * (config.table_size_m[1] - width) / 2.0
-        if math.hypot(cx, cy) >= config.keep_clear_radius_m + math.hypot(depth, width) / 2.0:
+        if math.hypot(cx - config.base_xy_m[0], cy - config.base_xy_m[1]) >= \
+                config.keep_clear_radius_m + math.hypot(depth, width) / 2.0:
             xy = (cx, cy)
             break
     if xy is None:

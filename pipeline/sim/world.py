@@ -123,7 +123,9 @@ class SimWorld:
             all_joints.append(info[1].decode())
             self._link_names[j] = info[12].decode()
             if info[2] != p.JOINT_FIXED:
-                movable[all_joints[-1]] = (j, info[8], info[9], info[10])
+                # pybullet reports a continuous joint as revolute with lower 0 > upper -1: unbounded.
+                lower, upper = (info[8], info[9]) if info[8] <= info[9] else (-math.inf, math.inf)
+                movable[all_joints[-1]] = (j, lower, upper, info[10])
         for name in (*config.joint_names, *config.fixed_joint_positions):
             if name not in all_joints:
                 raise ValueError(f"joint '{name}' from the robot config is not in {config.urdf} "
@@ -169,7 +171,8 @@ class SimWorld:
 
     @property
     def joint_limits(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """(lower (n,), upper (n,)) position limits of the planning joints, as the URDF gives them."""
+        """(lower (n,), upper (n,)) position limits of the planning joints, as the URDF gives them
+        (-inf, inf for a continuous joint)."""
         return self._joint_limits[0].copy(), self._joint_limits[1].copy()
 
     def set_joint_target(self, q_rad: npt.ArrayLike, qd_rad_s: npt.ArrayLike | None = None) -> None:

@@ -2,7 +2,7 @@
 
     robonav campaign --scenes N --seed S [--json FILE] [--goals-per-scene G] [--moving M]
                      [--source clutter|mbm|yaml] [--scene-dir DIR] [--no-noise] [--config FILE]
-                     [--extra-cameras FILE|none]
+                     [--extra-cameras FILE|none] [--robot FILE]
 
 One stack runs the whole campaign; scenes are swapped in at run time (`sim/objects set`,
 `perception/clear`). Each scene gets goals drawn so that a camera-built map can allow them
@@ -13,7 +13,8 @@ path as the arm starts: it rests early enough to be avoided, where a camera sees
 within that margin of the goal. Those goals are driven at `--moving-speed` (0.5) of the
 campaign's speed, and goals and plans are drawn again until the path leaves room for such a
 box. A goal the box makes unreachable for the reference planner counts as unreachable, not as
-a failure. Reports contacts (pybullet ground
+a failure. With `--robot FILE` the campaign runs that robot: the cell (cameras, clutter table,
+workspace) is placed for its reach and goals are drawn for it. Reports contacts (pybullet ground
 truth), setpoint limit violations, the smallest true clearance, planning time, perception
 latency and replans. Exit code 0 when nothing touched and no setpoint broke a limit.
 """
@@ -48,6 +49,7 @@ from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.common import add_logging_arguments, open_session, setup_logging
 from robonav.services.config import RobonavConfig, default_config_path, load_config
 from robonav.services.keys import SERVICES
+from robonav.services.stack.robot_cell import read_robot, with_robot, write_config
 from robonav.services.stack.up import Stack
 from robonav.services.tools.stop import Interrupt, stop_after_interrupt
 
@@ -65,6 +67,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=0, help="seeds scenes, goals, noise and planning")
     parser.add_argument("--json", dest="json_path", help="write the full report to this file")
     parser.add_argument("--config", help="YAML config (default: the packaged default.yaml)")
+    parser.add_argument("--robot", metavar="FILE",
+                        help="run this robot (a robot file, or a config whose robot section is taken), the cell "
+                             "placed for its reach")
     parser.add_argument("--goals-per-scene", type=int, default=2)
     parser.add_argument("--first-scene", type=int, default=0,
                         help="start at this scene number (the same scenes and goals as in a full run)")
@@ -349,6 +354,8 @@ def main(argv: list[str] | None = None) -> int:
         try:
             extra = None if args.extra_cameras == "none" else Path(args.extra_cameras)
             config_path = campaign_config(source, Path(tmp), noise=not args.no_noise, seed=args.seed, extra_cameras=extra)
+            if args.robot:
+                write_config(with_robot(load_config(config_path), read_robot(args.robot)), config_path)
             cfg = load_config(config_path)
             scenes = load_scenes(args, cfg)
         except (ConfigError, OSError, ValueError, yaml.YAMLError) as exc:

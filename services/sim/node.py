@@ -195,11 +195,13 @@ class SimNode(Node):
     def _apply_setpoint(self) -> None:
         """The newest setpoint, if the driver's rules let the arm follow it; the driver's own
         command (a brake, a hold) otherwise. Runs every physics step."""
-        # The driver's clock is the wall's when the sim keeps real time: a stalled physics loop
-        # must not make time the commander saw pass look like a jump.
-        now_s = time.monotonic() if self.cfg.sim.realtime else self.world.sim_time_s
         commanded = self.world.commanded_target()
         sample = self._setpoint_sub.try_recv()
+        # The driver's clock is the wall's when the sim keeps real time: a stalled physics loop
+        # must not make time the commander saw pass look like a jump. It is read once the
+        # setpoint is taken: read before, a stall in between (the thread preempted, or waiting
+        # for the GIL) hands over a setpoint newer than the clock says, which looks like a jump.
+        now_s = time.monotonic() if self.cfg.sim.realtime else self.world.sim_time_s
         if sample is not None:
             try:
                 check_publication_size(sample)

@@ -1,5 +1,9 @@
 """`robonav demo`: bring the stack up, plan and execute the configured goals, print a JSON summary.
 
+With `--robot FILE` (a robot file from `robonav robot init`, or a config whose `robot` section
+is taken) the stack runs that robot: for a robot other than the config's own, the cell is
+placed for its reach and goals are drawn for it (seeded by `--seed`) instead of the config's.
+
 Exit code 0 only if every goal was reached within tolerance with zero robot–obstacle contacts.
 Ctrl-C stops the arm and waits until it rests, then stops the services and reports the goals
 done so far (exit code 130).
@@ -8,6 +12,7 @@ done so far (exit code 130).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import signal
@@ -23,11 +28,13 @@ from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.perception.map_readiness import map_complete
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.wire.codes import ExecutionState
 from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, PlanResponse
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.common import add_logging_arguments, open_session, setup_logging, stop_on_signals
 from robonav.services.config import RobonavConfig, default_config_path, load_config
 from robonav.services.keys import SERVICES
+from robonav.services.stack.robot_cell import DEMO_GOAL_COUNT, demo_goals, read_robot, with_robot, write_config
 from robonav.services.stack.up import Stack
 from robonav.services.tools.stop import EXIT_INTERRUPTED, Interrupt, stop_after_interrupt, wait_or_interrupt
 from robonav.services.view.snapshot import snapshot_view
@@ -42,6 +49,9 @@ PLAN_ATTEMPTS = 3
 RETRYABLE = {"OCCUPANCY_INCOMPLETE", "OCCUPANCY_STALE", "OCCUPANCY_MISSING", "PATH_IN_COLLISION"}
 SETTLE_TIMEOUT_S = 2.0
 """Longest wait after a trajectory ends for the arm to come within tolerance of the goal [s]."""
+MOTION_ATTEMPTS = 3
+"""Motions per goal when one ends in a fault (the arm braked mid-way)."""
+"""Longest wait after a trajectory ends for the arm to come within tolerance of the goal [s]."""
 
 
 def write_seeded_config(source: Path, seed: int, directory: Path) -> Path:
@@ -51,6 +61,17 @@ def write_seeded_config(source: Path, seed: int, directory: Path) -> Path:
     out = directory / "demo-config.yaml"
     out.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
     return out
+
+
+def robot_config(source: Path, robot_file: Path, seed: int, directory: Path) -> Path:
+    """The config of `source` running the robot of `robot_file` (see `with_robot`), seeded, with
+    goals drawn for the robot when the config's are another robot's."""
+    cfg = with_robot(load_config(source), read_robot(robot_file))
+    cfg = dataclasses.replace(cfg, planner=dataclasses.replace(cfg.planner, seed=seed))
+    if not cfg.demo.goals_rad:
+        log.warning("drawing %d goals for robot '%s' (seed %d)", DEMO_GOAL_COUNT, cfg.robot.name, seed)
+        cfg = dataclasses.replace(cfg, demo=dataclasses.replace(cfg.demo, goals_rad=demo_goals(cfg, seed)))
+    return write_config(cfg, directory / "demo-config.yaml")
 
 
 def map_is_complete(client: RobonavClient, cfg: RobonavConfig) -> bool:
@@ -69,6 +90,32 @@ def true_scene(cfg: RobonavConfig) -> CollisionWorld:
 
 def run_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, index: int, goal: np.ndarray,
              seed: int, interrupt: Interrupt) -> dict[str, Any]:
+    """Plan and move to `goal`; a motion that ended in a fault (the arm braked: a watchdog, a
+    setpoint the robot side refused) is planned again from where the arm came to rest, up to
+    `MOTION_ATTEMPTS` motions, each fault kept in the record's `faults`."""
+    faults: list[dict[str, Any]] = []
+    blocked: bool | None = None
+    for motion in range(MOTION_ATTEMPTS):
+        record = move_to_goal(client, truth, cfg, index, goal, seed + 1000 * motion, interrupt)
+        blocked = record["straight_line_blocked"] if blocked is None else blocked
+        if record.get("result") != ExecutionState.ERROR.value or interrupt.is_set() or motion == MOTION_ATTEMPTS - 1:
+            break
+        status = client.status
+        faults.append({"result": record["result"], "error_code": status.error_code if status else None,
+                       "message": status.error_message if status else None,
+                       "final_error_rad": record["final_error_rad"]})
+        log.warning("goal %d: the motion ended in a fault (%s): planning again from where the arm rests",
+                    index, faults[-1]["message"])
+        client.wait_for(lambda: client.joint_state is not None and float(np.max(np.abs(client.joint_state.velocity))) < 1e-3,
+                        SETTLE_TIMEOUT_S)
+    record.update(straight_line_blocked=blocked, faults=faults)
+    return record
+
+
+def move_to_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfig, index: int, goal: np.ndarray,
+                 seed: int, interrupt: Interrupt) -> dict[str, Any]:
+    """One motion to `goal`: plan (again while refused for a reason a fresher map can remove),
+    execute, wait, judge."""
     assert client.joint_state is not None
     start = client.joint_state.position.copy()
     # Blocked means the goal needs a detour around a real obstacle.
@@ -200,7 +247,11 @@ def run_demo(cfg: RobonavConfig, config_path: Path, seed: int, *, view_port: int
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="robonav demo", description=__doc__)
     parser.add_argument("--config", help="YAML config file (default: the packaged configs/default.yaml)")
-    parser.add_argument("--seed", type=int, default=0, help="seeds the planner's sampler and shortcutting")
+    parser.add_argument("--robot", metavar="FILE",
+                        help="run this robot (a robot file, or a config whose robot section is taken): the cell is "
+                             "placed for its reach and goals are drawn for it")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seeds the planner's sampler and shortcutting (and the goals drawn with --robot)")
     parser.add_argument("--json", dest="json_path", help="also write the summary to this file")
     parser.add_argument("--view", action="store_true", help="also serve the live 3D view; stay up until Ctrl-C")
     parser.add_argument("--view-port", type=int, default=8080, help="port of the view (default %(default)s)")
@@ -211,9 +262,12 @@ def main(argv: list[str] | None = None) -> int:
     source = Path(args.config) if args.config else default_config_path()
     with tempfile.TemporaryDirectory(prefix="robonav-demo-") as tmp:
         try:
-            config_path = write_seeded_config(source, args.seed, Path(tmp))
+            if args.robot:
+                config_path = robot_config(source, Path(args.robot), args.seed, Path(tmp))
+            else:
+                config_path = write_seeded_config(source, args.seed, Path(tmp))
             cfg = load_config(config_path)
-        except (ConfigError, OSError, yaml.YAMLError) as exc:
+        except (ConfigError, OSError, ValueError, yaml.YAMLError) as exc:
             log.error("%s", exc)
             return 2
         if len(cfg.demo.goals_rad) == 0:

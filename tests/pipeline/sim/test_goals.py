@@ -6,9 +6,18 @@ import numpy as np
 import pytest
 
 from robonav.pipeline.collision.world import CollisionWorld
+from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
+from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.sim.goals import intruder_for_trajectory, perceivable_objects, point_along_path, sample_goal
+from robonav.pipeline.sim.goals import (
+    draw_goal_sequence,
+    goal_region,
+    intruder_for_trajectory,
+    perceivable_objects,
+    point_along_path,
+    sample_goal,
+)
 from robonav.pipeline.sim.scenes import ClutterConfig, clutter_scene
 from robonav.services.config import load_config
 
@@ -110,3 +119,26 @@ def test_rejected_resting_places_are_skipped_for_later_ones() -> None:
     assert np.linalg.norm(np.array(later.target_m) - first.target_m) >= 0.05
     assert intruder_for_trajectory(ROBOT, times, path, link="panda_hand", slide_s=0.5, min_lead_s=1.0,
                                    reject=lambda box: True) is None
+
+
+def test_goal_sequences_start_above_the_table_and_each_goal_is_reached_from_the_last() -> None:
+    cfg = load_config()
+    low, high = goal_region(cfg.sim.objects, cfg.perception.workspace_min_m, cfg.perception.workspace_max_m)
+    assert low[2] == pytest.approx(0.2 + 0.05) and tuple(high) == cfg.perception.workspace_max_m  # table top 0.2 m
+    world = CollisionWorld(ROBOT, padding_m=0.05)
+    world.set_objects(perceivable_objects(cfg.sim.objects, 0.0))
+    planner = MotionPlanner(ROBOT, world, cfg.planner)
+    goals = draw_goal_sequence(world, planner, np.random.default_rng(1), HOME, count=3, link="panda_hand",
+                               region_min_m=low, region_max_m=high, min_clearance_m=0.05, seed=1)
+    assert len(goals) == 3
+    previous = HOME
+    for goal in goals:
+        assert world.clearance_m(goal) >= 0.05 and np.max(np.abs(goal - previous)) >= 0.5
+        assert np.all(ROBOT.frame_pose(goal, "panda_hand")[:3, 3] >= low)
+        outcome = planner.plan(PlanProblem(start_rad=previous, goals_rad=goal, allowed_planning_time_s=2.0, seed=2))
+        assert outcome.status is PlanStatus.SUCCESS
+        previous = goal
+    with pytest.raises(ValueError, match="no reachable goal 0"):  # a region the hand never reaches
+        draw_goal_sequence(world, planner, np.random.default_rng(1), HOME, count=1, link="panda_hand",
+                           region_min_m=[3.0, 3.0, 3.0], region_max_m=[3.1, 3.1, 3.1], min_clearance_m=0.05, seed=1,
+                           draws=2)
