@@ -11,7 +11,11 @@ a driver must do"):
   time dt between them its position is within reach of the last one moving at its velocity
   (0.5 a_max dt^2, plus v_max times a small timing slack for clock jitter), its velocity within
   a_max (dt + slack). dt is the stamp difference, but never more than the time the driver
-  itself saw pass (plus the slack), so a forged future stamp buys no reach. Setpoints count in
+  itself saw pass since the last one was taken (plus the slack), credited with how late that
+  one arrived compared with the motion's most punctual setpoint (at most `timeout_s`): a late
+  setpoint followed by an on-time one is the network's delay, not a jump, yet no stamp runs
+  ahead of the driver's own clock as the motion's most punctual setpoint set it, so a forged
+  future stamp buys no reach. Setpoints count in
   the order they arrive: one stamped no later than the last followed one (a commander whose
   clock went back, a restarted executor) is judged by the driver's own elapsed time alone, so a
   stamp far in the future can never hold later setpoints back. While the arm rests or brakes, a
@@ -111,6 +115,8 @@ class SetpointFollower:
         self._brake_start_s = 0.0
         self._looked_s: float | None = None
         """When the driver last looked for a setpoint (`offer` or `tick`)."""
+        self._punctual_s = 0.0
+        """The smallest (taken - stamp) of the motion's followed setpoints: its most punctual one."""
 
     def offer(self, q: FloatArray, qd: FloatArray, qdd: FloatArray, stamp_s: float, now_s: float,
               commanded: tuple[FloatArray, FloatArray]) -> Rejection | None:
@@ -126,6 +132,10 @@ class SetpointFollower:
         rejection = self._judge(np.asarray(q, float), np.asarray(qd, float), np.asarray(qdd, float), stamp_s, now_s)
         self._looked_s = now_s
         if rejection is None:
+            offset_s = float(now_s) - float(stamp_s)
+            continues = self.state is DriverState.FOLLOWING and self._ref is not None and stamp_s > self._ref[3]
+            # A new motion, or a commander whose clock went back, starts its own reference.
+            self._punctual_s = min(self._punctual_s, offset_s) if continues else offset_s
             self._ref = (np.array(q, float), np.array(qd, float), np.array(qdd, float), float(stamp_s), float(now_s))
             self.state = DriverState.FOLLOWING
             self._brake = None
@@ -192,7 +202,10 @@ class SetpointFollower:
             # The stamps say how much time passed, but no more than the driver saw pass itself; a
             # stamp that went back (the commander's clock did) says nothing, and the driver's does.
             seen_s = max(now_s - taken_s, 0.0) + self.slack_s
-            dt = min(stamp_s - stamp_r, seen_s) if stamp_s > stamp_r else seen_s
+            # The last one's lateness against the motion's most punctual setpoint: bounded by the
+            # watchdog, whose first-order hold allows that much anyway.
+            late_s = min(max(taken_s - stamp_r - self._punctual_s, 0.0), self.timeout_s)
+            dt = min(stamp_s - stamp_r, seen_s + late_s) if stamp_s > stamp_r else seen_s
             reach = 0.5 * lim.acceleration * min(dt, self.timeout_s) ** 2 + lim.velocity * self.slack_s
             position_error = np.abs(q - (q_r + qd_r * dt))
             velocity_error = np.abs(qd - qd_r)

@@ -153,3 +153,22 @@ def test_a_driver_that_stalled_takes_a_motion_from_rest_that_far_in() -> None:
     stalled = _follower()
     stalled.tick(10.0, (HOME, np.zeros(7)))
     assert stalled.offer(q, qd, qdd, 1000.0 + into, 10.0 + into, (HOME, np.zeros(7))) is None
+
+
+def test_a_late_setpoint_then_an_on_time_one_is_the_networks_delay_not_a_jump() -> None:
+    follower = _follower()
+    t = _follow_until(follower, 0.3)
+    late_s = 0.06  # three times the slack: the router held one setpoint back
+    # The setpoint stamped at t arrives late_s late; the next, stamped a step after, on time.
+    assert follower.offer(*_at(t), 1000.0 + t, t + late_s, _at(t)[:2]) is None
+    on_time = t + late_s + STEP_S
+    assert follower.offer(*_at(on_time), 1000.0 + on_time, on_time + 0.001, _at(t)[:2]) is None
+    assert follower.counters.brakes == 0
+    # The credit is the delay against the motion's most punctual setpoint, no more: a stamp ahead
+    # of the driver's clock as that one set it still buys no reach.
+    follower = _follower()
+    t = _follow_until(follower, 0.3)
+    assert follower.offer(*_at(t), 1000.0 + t, t + late_s, _at(t)[:2]) is None
+    ahead = t + late_s + 0.1
+    rejection = follower.offer(*_at(ahead), 1000.0 + ahead, t + late_s + STEP_S, _at(t)[:2])
+    assert rejection is not None and rejection.reason == "jump"
