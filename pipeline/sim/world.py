@@ -23,6 +23,7 @@ from robonav.pipeline.robot.link_geometry import urdf_with_resolved_meshes
 from robonav.pipeline.robot.model import resolve_urdf_path
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.bullet import pybullet as p
+from robonav.pipeline.sim.bullet import quiet_native_output
 from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.rendering import DepthFrame, opengl_projection_matrix, render_depth
 
@@ -107,7 +108,8 @@ class SimWorld:
             try:
                 # No URDF_USE_SELF_COLLISION flag: the arm never collides with itself here; self-collision
                 # is the planner's business and would only add solver noise at the wrist.
-                self._robot = p.loadURDF(str(resolved), useFixedBase=True, physicsClientId=cid)
+                with quiet_native_output():
+                    self._robot = p.loadURDF(str(resolved), useFixedBase=True, physicsClientId=cid)
             except p.error as exc:
                 raise ValueError(f"robot.urdf '{config.urdf}' could not be loaded from {urdf_path}") from exc
 

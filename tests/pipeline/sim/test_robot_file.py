@@ -31,3 +31,13 @@ def test_the_ur5_stands_where_the_planner_puts_it() -> None:
         world.set_object_pose("probe", wrist_m + np.array([0.0, 0.0, 0.5]))
         world.step()
         assert world.robot_obstacle_contacts() == []
+
+
+def test_loading_a_urdf_without_inertials_prints_nothing(capfd) -> None:  # noqa: ANN001
+    # The UR5's URDF has links without <inertial>: pybullet's importer warns on stdout for each.
+    cfg = load_robot_file(REPO_ROOT / "configs" / "ur5.yaml")
+    capfd.readouterr()
+    with SimWorld(cfg, CAMERA, SimConfig(follow="kinematic")):
+        pass
+    out, err = capfd.readouterr()
+    assert out == "" and err == "", (out[:300], err[:300])
