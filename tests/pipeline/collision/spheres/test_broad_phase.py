@@ -250,3 +250,26 @@ def test_voxel_clearance_tiers_and_surface_cells(panda: RobotModel) -> None:
     assert flags_cells == sorted(flags_cells) and sum(flags_cells) <= sum(flags)
     with pytest.raises(ValueError, match="surface_cell_m"):
         broad.set_occupied_voxels(center[None], 0.02, surface_m=corner[None], surface_cell_m=0.003)
+
+
+def test_fine_surface_cells_flag_fewer_states_than_their_voxels(panda: RobotModel) -> None:
+    """One seen point in the far corner of a voxel below the fingertips. Its 5 mm cell is flagged
+    only where the spheres (grown by a tier's clearance) reach that cell; the 2 cm voxel alone
+    wherever they reach the voxel. So the cell flags a subset of the voxel's (gap, tier) pairs,
+    and strictly fewer: the 1.5 cm between the voxel's near face and the cell are not flagged
+    for it. (Here the cells' distance field already decides; `test_kernels.py` checks the exact
+    cell test behind it.)"""
+    home = panda.home_position_rad
+    broad = SphereBroadPhase(panda)
+    target = panda.frame_pose(home, "panda_grasptarget")[:3, 3]
+    by_voxel, by_cell = set(), set()
+    for gap in np.arange(0.0, 0.1, 0.004):
+        center = (np.floor((target - np.array([0.0, 0.0, 0.02 + gap])) / 0.02) + 0.5) * 0.02
+        far_corner = center - 0.0099  # the cell [center - 0.01, center - 0.005] in every axis
+        broad.set_occupied_voxels(center[None], 0.02, 0.06, tiers=3)
+        by_voxel |= {(round(gap, 3), t) for t in range(4) if broad.state_suspect(home, tier=t)}
+        broad.set_occupied_voxels(center[None], 0.02, 0.06, surface_m=far_corner[None], surface_cell_m=0.005, tiers=3)
+        by_cell |= {(round(gap, 3), t) for t in range(4) if broad.state_suspect(home, tier=t)}
+    assert by_cell <= by_voxel
+    assert len(by_cell) < len(by_voxel)
+    assert by_cell  # the cell is flagged too, where the spheres reach it
