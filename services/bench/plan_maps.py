@@ -8,17 +8,20 @@ a `SURFACE_RESOLUTION_M` grid, and plans with the map's clearance and its near-g
 
 `camera`: the configured cameras render the scene with the arm at the problem's start, the
 sim's depth-noise model corrupts each frame, and the perception core integrates them: unseen
-space, occlusions and flying pixels are part of the test (`camera_map`).
+space, occlusions and flying pixels are part of the test (`camera_map`). The crop box grows to
+hold the problem's obstacles (`_holding`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from robonav.pipeline.camera import CameraConfig
+from robonav.pipeline.collision.fcl_shapes import world_aabb
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.evaluation.surface_sampling import sample_object_surfaces
 from robonav.pipeline.perception.config import PerceptionConfig
@@ -109,6 +112,28 @@ def _packed(keys: FloatArray) -> np.ndarray:
     return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
 
 
+REACH_BOX_M = ((-1.2, -1.2, -1.0), (1.5, 1.2, 1.5))
+"""Where the perception crop box of `--scene camera` may grow to hold a problem's obstacles [m]:
+beyond the arm's reach (0.855 m for the Panda) with room to spare."""
+
+
+def _holding(config: PerceptionConfig, objects: Sequence[SceneObject]) -> PerceptionConfig:
+    """`config` with its crop box grown to hold the objects (within `REACH_BOX_M`). The packaged
+    box starts at the robot's base plane, where a cell's floor is; MotionBenchMaker's tables and
+    shelves stand on legs down to 0.7 m below it, and a map cropped there leaves them out: the
+    arm then reaches under a table into space the map never held. A cell's crop box is set up
+    to hold its workspace, so the bench's is too."""
+    if not objects:
+        return config
+    bounds = [world_aabb(o, o.world_from_object) for o in objects]
+    low = np.min([center - half for center, half in bounds], axis=0) - config.resolution_m
+    high = np.max([center + half for center, half in bounds], axis=0) + config.resolution_m
+    low = np.maximum(np.minimum(low, config.workspace_min_m), REACH_BOX_M[0])
+    high = np.minimum(np.maximum(high, config.workspace_max_m), REACH_BOX_M[1])
+    return dataclasses.replace(config, workspace_min_m=tuple(float(v) for v in low),
+                               workspace_max_m=tuple(float(v) for v in high))
+
+
 def camera_map(objects: Sequence[SceneObject], robot: RobotModel, cameras: Sequence[CameraConfig],
                noise: DepthNoiseConfig, q_rad: FloatArray, *, seed: int, config: PerceptionConfig | None = None,
                frames: int = CAMERA_FRAMES) -> PlanningMap:
@@ -120,7 +145,7 @@ def camera_map(objects: Sequence[SceneObject], robot: RobotModel, cameras: Seque
     integrate them. What the cameras do not see (back sides, shadows) stays unknown. The
     surface is the noisy points outside the robot that fall in a seen voxel.
     """
-    cfg = config if config is not None else PerceptionConfig()
+    cfg = _holding(config if config is not None else PerceptionConfig(), objects)
     rng = np.random.default_rng(seed)
     self_filter, clear_filter = perception_filters(robot.link_hull_vertices, robot.static_link_names, cfg,
                                                    robot.config.padding_m)

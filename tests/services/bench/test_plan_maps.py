@@ -55,3 +55,17 @@ def test_camera_map_sees_the_front_of_a_box_through_noise_and_not_the_robot() ->
     planning_map.apply(world)
     with world.anchored(home[None], 1.0):
         assert not world.in_collision(home)  # the self filter kept the arm out of its own map
+
+
+def test_camera_map_holds_what_stands_below_the_robots_base_plane() -> None:
+    """MotionBenchMaker's tables stand on legs below the robot's base plane, where the packaged
+    crop box ends: the bench grows the box to hold the scene, so the map has them."""
+    cfg = load_config(default_config_path())
+    robot = RobotModel.from_config(cfg.robot)
+    post = SceneObject("post", "box", (0.6, -0.3, -0.1), size_m=(0.08, 0.08, 0.4))  # from z -0.3 to 0.1
+    assert cfg.perception.workspace_min_m[2] > -0.2
+    noise = dataclasses.replace(cfg.sim.noise, enabled=False)
+    planning_map = camera_map([post], robot, cfg.cameras, noise, robot.home_position_rad, seed=1,
+                              config=cfg.perception, frames=1)
+    below = planning_map.seen_voxels_m[planning_map.seen_voxels_m[:, 2] < -0.1]
+    assert below.shape[0] > 5 and np.median(_box_distance(below, post)) < 0.015  # voxels of the post itself
