@@ -179,6 +179,17 @@ def _sphere_cell_m(surface_res_m: float, resolution_m: float) -> float:
     return resolution_m
 
 
+def clearance_fractions(distance_rad: npt.ArrayLike, radius_rad: float) -> FloatArray:
+    """The share of the clearance kept at joint-space distances `distance_rad` from the nearest
+    anchor, the tiers of `CollisionWorld.anchored` (1 from `radius_rad` on, 0 within a tier of
+    the anchor); all ones when `radius_rad` is 0."""
+    distance = np.asarray(distance_rad, dtype=np.float64)
+    if radius_rad <= 0:
+        return np.ones_like(distance)
+    tiers = np.minimum(TIERS - 1, np.floor(TIERS * distance / radius_rad))
+    return np.where(distance >= radius_rad, 1.0, tiers / TIERS)
+
+
 def _tier(distance_sq: float, radius_sq: float) -> int:
     if distance_sq >= radius_sq:
         return -1

@@ -37,7 +37,8 @@ class PlannerConfig:
     """Within this joint-space distance (Euclidean) of the start or a goal, a map's clearance is
     released: the padded links need only keep off what the cameras saw, so a goal near a surface
     (a grasp in a shelf) is reachable [rad]. Only against maps that come with their seen voxels
-    and inflation (`CollisionWorld.set_octree(clearance_m=...)`); 0: the clearance holds everywhere."""
+    and inflation (`CollisionWorld.set_octree(clearance_m=...)`; in the services, a map whose
+    `Occupancy.inflation_m` says it, see `map_clearance_m`); 0: the inflated map everywhere."""
     release_map_clearance: bool = True
     """When no path keeps a map's clearance (shrunk near the start and goals) within the
     sphere-first share of the budget, search the rest of it for a path that keeps the padded
@@ -79,6 +80,15 @@ class PlannerConfig:
     loads it at start, so a restarted planner keeps its objects; relative to the working directory.
     None: not saved (`robonav up` then gives each stack's planner a file of its own, and
     `robonav serve planner --scene-file FILE` overrides this)."""
+
+    def map_clearance_m(self, inflation_m: float | None) -> float | None:
+        """The clearance a map grown by `inflation_m` is planned with (`CollisionWorld.set_octree(
+        clearance_m=)`): its inflation, when the map says what that is (`Occupancy.inflation_m`)
+        and the planner releases it near a query's ends (`surface_allowance_rad` > 0); None: the
+        inflated map is the map, everywhere."""
+        if inflation_m is None or self.surface_allowance_rad <= 0:
+            return None
+        return float(inflation_m)
 
     def __post_init__(self) -> None:
         require(self.allowed_planning_time_s > 0, f"planner.allowed_planning_time_s must be > 0, got {self.allowed_planning_time_s}")

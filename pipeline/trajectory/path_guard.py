@@ -10,6 +10,13 @@ confirmed with FCL: the padded link hulls against the suspect voxels as boxes gr
 inflation (a superset of the planner's inflated voxels), which is at least as cautious as the
 planner's hull-vs-inflated-octree check and not more. Only voxels new since `start` count: the
 planner already accepted the others.
+
+On a map the planner plans with its inflation released near a query's ends
+(`PlannerConfig.map_clearance_m`), the guard releases it the same way near the path's start and
+goal (`allowance_radius_rad`): the inflation shrinks in the planner's tiers toward them, to
+none within the innermost, where the padded links must only keep off the new voxels. A path
+that ends a centimetre from a shelf is then not stopped by a voxel of that shelf's noise, and
+anything that lands on the path still stops it.
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from robonav.pipeline.collision.spheres.sphere_model import robot_sphere_model
+from robonav.pipeline.collision.surface_allowance import clearance_fractions
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
 from robonav.pipeline.robot.model import RobotModel
@@ -31,7 +39,7 @@ class PathGuard:
     def __init__(self, robot: RobotModel, *, padding_m: float, inflation_m: float, edge_resolution_rad: float) -> None:
         self._spheres = robot_sphere_model(robot)
         self._kinematics = LinkKinematics.from_robot(robot)
-        self._margin_m = padding_m + inflation_m
+        self._padding_m = padding_m
         self._inflation_m = inflation_m
         self._confirm = CollisionWorld(robot, padding_m=padding_m, broad_phase=False)  # only its links are used
         self._resolution_rad = edge_resolution_rad
@@ -95,14 +103,17 @@ class PathGuard:
             states.append(c0 + np.outer(np.arange(1, steps + 1) / steps, c1 - c0))
         return np.vstack(states)
 
-    def remaining_blocked(self, path: npt.ArrayLike, q_now: npt.ArrayLike) -> bool:
+    def remaining_blocked(self, path: npt.ArrayLike, q_now: npt.ArrayLike, *, allowance_radius_rad: float = 0.0) -> bool:
         """True when the path from near `q_now` to its end comes within the margin of a new voxel."""
-        return self.blocked_state(path, q_now) is not None
+        return self.blocked_state(path, q_now, allowance_radius_rad=allowance_radius_rad) is not None
 
-    def blocked_state(self, path: npt.ArrayLike, q_now: npt.ArrayLike, *, confirm: bool = True) -> FloatArray | None:
+    def blocked_state(self, path: npt.ArrayLike, q_now: npt.ArrayLike, *, confirm: bool = True,
+                      allowance_radius_rad: float = 0.0) -> FloatArray | None:
         """A state from near `q_now` to the path's end whose padded links reach a new (inflated)
         voxel, or None when the rest of the path is clear. Without `confirm`, a state whose
-        covering spheres come near one (the fast, more cautious stage only).
+        covering spheres come near one (the fast, more cautious stage only). With
+        `allowance_radius_rad` (the planner's `surface_allowance_rad`), the inflation shrinks
+        toward the path's start and goal as the planner's clearance does (module docstring).
 
         Suspects are confirmed deepest first (the sphere furthest inside a voxel's reach): when an
         obstacle really lands on the path that state almost always collides, so the stop is
@@ -110,12 +121,19 @@ class PathGuard:
         if self._tree is None:
             return None
         states = self.states_ahead(path, q_now)
+        path_arr = np.asarray(path, dtype=np.float64)
+        inflation = np.full(len(states), self._inflation_m)
+        if allowance_radius_rad > 0:
+            ends = path_arr[[0, -1]]
+            to_end = np.min(np.linalg.norm(states[:, None, :] - ends[None], axis=2), axis=1)
+            inflation *= clearance_fractions(to_end, allowance_radius_rad)
         poses = self._kinematics.link_poses_batch(states)[:, self._spheres.link_index]  # (M, S, 4, 4)
         centers = np.einsum("msij,sj->msi", poses[..., :3, :3], self._spheres.centers_link_m) + poses[..., :3, 3]
         # A voxel is a cube around its center: half its diagonal more covers every point of it.
-        reach = self._spheres.radii_m + self._margin_m + 0.5 * np.sqrt(3.0) * self._voxel_m
+        reach = (self._spheres.radii_m[None] + self._padding_m + inflation[:, None]
+                 + 0.5 * np.sqrt(3.0) * self._voxel_m)  # (M, S)
         distances, voxels = self._tree.query(centers.reshape(-1, 3), distance_upper_bound=float(reach.max()))
-        gap = distances.reshape(len(states), -1) - reach[None]
+        gap = distances.reshape(len(states), -1) - reach
         near = gap < 0.0
         suspects = np.nonzero(np.any(near, axis=1))[0]
         if len(suspects) == 0:
@@ -126,11 +144,10 @@ class PathGuard:
         # State by state: the voxels within reach of that state's suspect
         # spheres, as inflated boxes, against the padded links. Few voxels per state, so the
         # work stays small however many voxels are new.
-        side = self._voxel_m + 2.0 * self._inflation_m
         for m in suspects:
-            balls = self._tree.query_ball_point(centers[m][near[m]], r=reach[near[m]])
+            balls = self._tree.query_ball_point(centers[m][near[m]], r=reach[m][near[m]])
             indices = np.unique(np.fromiter((i for ball in balls for i in ball), dtype=np.int64))
-            if self._confirm.touches_cubes(states[m], self._new_centers[indices], side):
+            if self._confirm.touches_cubes(states[m], self._new_centers[indices], self._voxel_m + 2.0 * inflation[m]):
                 return states[m]
         return None
 

@@ -21,7 +21,7 @@ import math
 import types
 import typing
 from dataclasses import dataclass, field
-from typing import Any, TypeVar, get_type_hints
+from typing import Any, ClassVar, TypeVar, get_type_hints
 
 import msgpack
 import numpy as np
@@ -69,8 +69,16 @@ def array_field(dtype: str, shape: tuple[int | str | None, ...], *, finite: bool
 class Message:
     """Base of wire messages: frozen dataclasses with `to_wire`/`from_wire`."""
 
+    ADDED_KEYS: ClassVar[tuple[str, ...]] = ()
+    """Optional keys added within version 1 after 1.0: sent, they are listed in `ignorable`, so
+    an older receiver drops them instead of refusing the message (docs/protocol.md, "Versions")."""
+
     def to_dict(self) -> dict[str, Any]:
-        return {"v": SCHEMA_VERSION, **self._fields_to_dict()}
+        out = {"v": SCHEMA_VERSION, **self._fields_to_dict()}
+        added = [key for key in self.ADDED_KEYS if key in out]
+        if added:
+            out[IGNORABLE_KEY] = added
+        return out
 
     def _fields_to_dict(self) -> dict[str, Any]:
         """The fields as a plain map without `v`; a Message nested in another travels in this form."""

@@ -5,8 +5,9 @@ Field docstrings give units and shapes. `n` is the number of joints named in the
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 
@@ -127,10 +128,18 @@ class Occupancy(Message):
     camera_frames: dict[str, int] | None = None
     """Camera id -> frames integrated since the last clear or perception start, for every
     configured camera (0 for one not heard from); absent from older producers."""
+    inflation_m: float | None = None
+    """How far `octomap_binary` grows the voxels of `occupied_centers_m` [m]: with it, a planner
+    may keep that clearance off the seen voxels on the way and release it near a query's start
+    and goal (docs/architecture.md); absent from older producers (the octree is then the map)."""
+
+    ADDED_KEYS: ClassVar[tuple[str, ...]] = ("inflation_m",)
 
     def __post_init__(self) -> None:
         if self.camera_frames is not None and any(n < 0 for n in self.camera_frames.values()):
             raise ValueError(f"Occupancy: camera_frames must be >= 0, got {self.camera_frames}")
+        if self.inflation_m is not None and not (math.isfinite(self.inflation_m) and self.inflation_m >= 0):
+            raise ValueError(f"Occupancy: inflation_m must be finite and >= 0, got {self.inflation_m}")
 
 
 @dataclass(frozen=True)

@@ -436,7 +436,10 @@ class SceneRunner:
                 continue
             check_started = time.perf_counter()
             self.guard.update_map(occupancy.occupied_centers_m, occupancy.resolution_m)
-            blocked = self.guard.remaining_blocked(path, self._q())
+            # As the executor's monitor does: the inflation released near the path's ends on a map planned so.
+            planner = self.cfg.planner
+            allowance_rad = planner.surface_allowance_rad if planner.map_clearance_m(occupancy.inflation_m) is not None else 0.0
+            blocked = self.guard.remaining_blocked(path, self._q(), allowance_radius_rad=allowance_rad)
             record.guard_check_ms.append(round((time.perf_counter() - check_started) * 1e3, 1))
             if blocked:
                 record.guard_stops += 1

@@ -15,11 +15,21 @@ planner has run, or it has not answered yet) an execute waits `executor.scene_wa
 then refused with SCENE_MISSING, unless `executor.require_scene` is off (a cell without a
 planner), when motions are checked against the map alone. The map obeys the planner's rules:
 missing, stale (by its stamp) or incomplete maps refuse the execute as they refuse a plan.
+
+A map that says its inflation is planned with that clearance kept on the way and released
+near each query's start and goal, down to keeping the padded links off the seen voxels, and a
+path that keeps the clearance may not be found in time, then one that keeps off the seen voxels
+is returned (`pipeline/collision/surface_allowance.py`, `PlannerConfig.release_map_clearance`).
+Every path the planner returns keeps that much, and only that much holds for all of them, so
+the executor checks a motion on such a map against the seen voxels: a plan is never refused
+for the clearance it was allowed to give up, and a motion into anything seen still is.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -130,12 +140,21 @@ class ExecuteCheck:
             self._apply(scene, occupancy)
             # The planner's own resolution for a returned path: its states are the ones checked on the lines.
             resolution = self._cfg.planner.path_check_resolution_rad or self._cfg.planner.edge_resolution_rad
-            checked = checked_timing(self._world, timing, resolution_rad=resolution,
-                                     escape_radius_rad=self._cfg.planner.start_escape_rad, path_rad=path)
+            with self._rule(path):
+                checked = checked_timing(self._world, timing, resolution_rad=resolution,
+                                         escape_radius_rad=self._cfg.planner.start_escape_rad, path_rad=path)
         revision = None if scene is None else scene.state.revision
         if checked.violation is not None:
             raise _refusal(checked.violation, occupancy, revision)
         return CheckedMotion(checked.trajectory, occupancy, revision, (time.perf_counter() - started) * 1e3, checked.samples)
+
+    def _rule(self, path: FloatArray) -> contextlib.AbstractContextManager[None]:
+        """On a map planned with its clearance released near the ends (`PlannerConfig.map_clearance_m`),
+        the rule every path the planner returns keeps: padded links off the seen voxels (the
+        clearance released everywhere); otherwise the inflated map, as it is."""
+        if not self._world.has_surface_allowance:
+            return contextlib.nullcontext()
+        return self._world.anchored(path[:1], math.inf)
 
     def _wait_for_scene(self) -> _Scene | None:
         with self._scene_arrived:
@@ -194,7 +213,8 @@ class ExecuteCheck:
                 self._world.clear_octree()
             else:
                 try:
-                    self._world.set_octree(occupancy.octomap_binary, occupancy.resolution_m, occupancy.occupied_centers_m)
+                    self._world.set_octree(occupancy.octomap_binary, occupancy.resolution_m, occupancy.occupied_centers_m,
+                                           clearance_m=self._cfg.planner.map_clearance_m(occupancy.inflation_m))
                 except ValueError as exc:
                     raise ProtocolError(ErrorCode.OCCUPANCY_MISSING,
                                         f"the newest occupancy map (seq {occupancy.seq}) is unusable: {exc}") from exc

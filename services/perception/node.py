@@ -295,7 +295,7 @@ class PerceptionNode(Node):
         self.published += 1
         self._pub.put(Occupancy(stamp=self._newest_stamp, resolution_m=self.cfg.perception.resolution_m,
                                 octomap_binary=binary, occupied_centers_m=centers, seq=self.published,
-                                camera_frames=camera_frames).to_wire())
+                                camera_frames=camera_frames, inflation_m=self.cfg.perception.inflation_m).to_wire())
         if clusters is not None:
             self._clusters_pub.put(clusters.to_wire())
         self.last_stage_ms["publish"] = (time.perf_counter() - t0) * 1e3

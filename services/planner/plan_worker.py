@@ -3,7 +3,9 @@
 `MotionPlanner` and `CollisionWorld` are not thread-safe (scratch buffers, posed FCL objects,
 kept roadmaps), so each worker thread of the planner plans in a world of its own. Before each
 plan, and only then, the worker brings its world up to date: the scene (objects and attached
-objects, from a `SceneSnapshot` when its revision changed) and the newest occupancy map. A plan
+objects, from a `SceneSnapshot` when its revision changed) and the newest occupancy map, with
+its inflation as the clearance released near each query's start and goal when the map carries
+it (`pipeline/collision/surface_allowance.py`). A plan
 in flight therefore keeps the scene and the map it started with; scene changes and new maps
 never wait for it.
 """
@@ -46,7 +48,8 @@ class PlanWorker:
             self.scene_revision = scene.revision
         if newest_map is not None and newest_map is not self.occupancy:
             self.occupancy = newest_map  # a map the world refuses is not tried again
-            self.world.set_octree(newest_map.octomap_binary, newest_map.resolution_m, newest_map.occupied_centers_m)
+            self.world.set_octree(newest_map.octomap_binary, newest_map.resolution_m, newest_map.occupied_centers_m,
+                                  clearance_m=self.planner.config.map_clearance_m(newest_map.inflation_m))
             self.map_stamp = newest_map.stamp
 
     def forget(self) -> None:

@@ -3,9 +3,10 @@
 Numba compiles a kernel the first time it is called with a new signature (from the on-disk
 cache when one is there: `robonav precompile`); without this, the first plan request paid for
 it, several seconds holding the GIL. A worker plans twice in a small world of its own making:
-around a box (objects only: the sphere-first search, shortcutting, re-validation, clearance)
-and around the same box as occupancy voxels (the exact search against an octree), and then
-calls the remaining collision queries once each. Then its world is emptied again.
+around a box (objects only: the sphere-first search, shortcutting, re-validation, clearance),
+around the same box as occupancy voxels (the exact search against an octree), and around those
+voxels given with a clearance, as a map that says its inflation is planned (`plan_worker.py`);
+then it calls the remaining collision queries once each. Then its world is emptied again.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ BOX_M = 0.1
 
 
 def warm_up_worker(worker: PlanWorker, *, seed: int = 0) -> float:
-    """Plan in `worker`'s world around a box, then around voxels, then empty the world; returns
+    """Plan in `worker`'s world around a box, then around voxels (bare, then with a clearance), then empty the world; returns
     the time it took [s]. Failures to find a path are fine: the code they ran is compiled."""
     started = time.perf_counter()
     robot, world, planner = worker.world.robot, worker.world, worker.planner
@@ -40,6 +41,9 @@ def warm_up_worker(worker: PlanWorker, *, seed: int = 0) -> float:
     world.clear_objects()
     centers = _cube_of_voxels(box_center)
     world.set_octree(_octree(centers), VOXEL_M, centers)
+    outcomes.append(planner.plan(PlanProblem(start_rad=start, goals_rad=goal, allowed_planning_time_s=2.0, seed=seed)))
+    # A map that says its inflation: the tiered sphere kernels of the clearance released near the ends.
+    world.set_octree(_octree(centers), VOXEL_M, centers, clearance_m=VOXEL_M)
     outcomes.append(planner.plan(PlanProblem(start_rad=start, goals_rad=goal, allowed_planning_time_s=2.0, seed=seed)))
     # What a plan may run besides the search: every collision query once, and the shortcut kernels
     # on a path that has something to shorten (the searches above may have gone straight).

@@ -113,3 +113,27 @@ def test_new_voxel_count_counts_only_voxels_the_previous_map_lacks() -> None:
     assert new_voxel_count(np.zeros((0, 3)), now, voxel_m) == 4
     with pytest.raises(ValueError, match="voxel_m"):
         new_voxel_count(before, now, 0.0)
+
+
+def test_with_the_allowance_a_voxel_within_the_inflation_of_the_goal_does_not_block(guard: PathGuard) -> None:
+    """The planner releases the inflation near the goal (`surface_allowance.py`); so does the guard:
+    a new voxel 1 cm below the goal's padded fingers blocks with the inflation everywhere, not
+    with the allowance, and a voxel on the way blocks either way."""
+    poses = ROBOT.link_poses(PATH[2])
+    hand = np.vstack([(vertices @ poses[link][:3, :3].T) + poses[link][:3, 3]
+                      for link, vertices in ROBOT.link_hull_vertices.items() if link.startswith(("panda_hand", "panda_left",
+                                                                                                  "panda_right"))])
+    lowest = hand[np.argmin(hand[:, 2])]
+    below = (lowest - [0.0, 0.0, CFG.robot.padding_m + 0.01 + 0.01])[None]  # its top face 1 cm off the padding
+    guard.start(None)
+    radius = CFG.planner.surface_allowance_rad
+    assert radius > 0
+    guard.update_map(below, 0.02)
+    assert guard.remaining_blocked(PATH, HOME)
+    assert not guard.remaining_blocked(PATH, HOME, allowance_radius_rad=radius)
+    # Inside what it allows, the voxel still blocks: 5 mm below the bare fingers.
+    guard.update_map((lowest - [0.0, 0.0, 0.005 + 0.01])[None], 0.02)
+    assert guard.remaining_blocked(PATH, HOME, allowance_radius_rad=radius)
+    on_the_way = cube_of_voxels(ROBOT.frame_pose(PATH[1], "panda_hand")[:3, 3])
+    guard.update_map(on_the_way, 0.02)
+    assert guard.remaining_blocked(PATH, HOME, allowance_radius_rad=radius)
