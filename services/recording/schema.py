@@ -22,7 +22,7 @@ from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud as FoxglovePointCloud
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 
-from robonav.pipeline.wire.codec import Message
+from robonav.pipeline.wire.codec import IGNORABLE_KEY, Message
 from robonav.pipeline.wire.messages import (
     Cameras,
     Clusters,
@@ -103,6 +103,8 @@ def _object_schema(cls: type, *, with_version: bool) -> dict[str, Any]:
             properties[f.name] = _value_schema(hints[f.name])
         if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             required.append(f.name)
+    if with_version:  # a message lists the keys it added after 1.0 (docs/protocol.md, "Versions")
+        properties[IGNORABLE_KEY] = {"type": "array", "items": {"type": "string"}}
     return {"type": "object", "properties": properties, "required": required, "additionalProperties": False}
 
 
