@@ -311,7 +311,7 @@ def _sphere_links(link_start: IntArray) -> IntArray:
     return np.repeat(np.arange(len(link_start) - 1), np.diff(link_start))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _pieces_apart(w: int, s: int, frames: FloatArray, link_joint: IntArray, sub_piece: IntArray, sub_start: IntArray,
                   side: IntArray, plane_joint: FloatArray, piece_link: IntArray, piece_center: FloatArray,
                   piece_radius: FloatArray, vertex_start: IntArray, vertices_joint: FloatArray) -> bool:  # pragma: no cover
@@ -358,7 +358,7 @@ def _pieces_apart(w: int, s: int, frames: FloatArray, link_joint: IntArray, sub_
     return apart
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def pair_separated(w: int, p: int, frames: FloatArray, link_joint: IntArray, pair_whole: IntArray, pair_range: IntArray,
                    sub_piece: IntArray, sub_start: IntArray, side: IntArray, plane_joint: FloatArray,
                    piece_link: IntArray, piece_center: FloatArray, piece_radius: FloatArray, vertex_start: IntArray,
@@ -377,7 +377,7 @@ def pair_separated(w: int, p: int, frames: FloatArray, link_joint: IntArray, pai
     return True
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def link_outside_box(w: int, li: int, k: int, frames: FloatArray, link_joint: IntArray, link_whole: IntArray,
                      vertex_start: IntArray, vertices_joint: FloatArray, obj_rotation: FloatArray,
                      obj_translation: FloatArray, obj_param: FloatArray, margin: float) -> bool:  # pragma: no cover
