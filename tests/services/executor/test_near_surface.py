@@ -22,7 +22,7 @@ import zenoh
 
 from robonav.pipeline.perception.maps.octree import OccupancyMap
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, JointState, Occupancy, PlanResponse, Setpoint
+from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, Occupancy, PlanResponse
 from robonav.services.client import RobonavClient
 from robonav.services.common import declare_latched_publisher, open_session
 from robonav.services.config import ZenohConfig, load_config
@@ -30,6 +30,7 @@ from robonav.services.executor.node import ExecutorNode
 from robonav.services.planner.node import PlannerNode
 
 from ..conftest import free_port, wait_until_served
+from .test_node import FakeRobot
 
 CONFIG = load_config()
 ROBOT = RobotModel.from_config(CONFIG.robot)
@@ -73,33 +74,8 @@ def _shelf_map(shelf_z: float, goal: np.ndarray, *, inflation_on_wire: bool) -> 
                      inflation_m=CONFIG.perception.inflation_m if inflation_on_wire else None)
 
 
-class EchoRobot:
-    """Publishes the last setpoint (or HOME) as the joint state at 100 Hz."""
-
-    def __init__(self, session: zenoh.Session, client: RobonavClient) -> None:
-        self.session, self.keys = session, client.keys
-        self.position = HOME.copy()
-        self._stop = threading.Event()
-        self._sub = session.declare_subscriber(self.keys.setpoint, self._on_setpoint)
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _on_setpoint(self, sample: zenoh.Sample) -> None:
-        self.position = Setpoint.from_wire(sample.payload.to_bytes()).position
-
-    def _run(self) -> None:
-        while not self._stop.wait(0.01):
-            state = JointState(stamp=time.time(), names=NAMES, position=self.position, velocity=np.zeros(len(NAMES)))
-            self.session.put(self.keys.joint_states, state.to_wire())
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join()
-        self._sub.undeclare()
-
-
 @pytest.fixture
-def cell() -> Iterator[tuple[PlannerNode, ExecutorNode, zenoh.Session, RobonavClient, EchoRobot]]:
+def cell() -> Iterator[tuple[PlannerNode, ExecutorNode, zenoh.Session, RobonavClient, FakeRobot]]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
     cfg = dataclasses.replace(CONFIG, zenoh=ZenohConfig(connect=(endpoint,)),
@@ -111,7 +87,7 @@ def cell() -> Iterator[tuple[PlannerNode, ExecutorNode, zenoh.Session, RobonavCl
     spinner = threading.Thread(target=executor.spin, args=(stop,), daemon=True)
     spinner.start()
     client = RobonavClient(client_session)
-    robot = EchoRobot(client_session, client)
+    robot = FakeRobot(client_session, client)
     for key in (client.keys.plan, client.keys.execute):
         wait_until_served(client_session, key)
     assert client.wait_for(lambda: executor._measured_q is not None, 5.0), "joint states never reached the executor"
