@@ -31,6 +31,7 @@ from robonav.pipeline.planning.problem import StartEscape as StartEscape
 from robonav.pipeline.planning.result import PlanResult, PlanStatus
 from robonav.pipeline.planning.shortcut import shortcut_path
 from robonav.pipeline.planning.start_escape import escape_start
+from robonav.pipeline.planning.workspace import workspace_validity
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.types import FloatArray, MotionValidFn, StateValidFn
 
@@ -109,7 +110,8 @@ class MotionPlanner:
         self._sync_world()
         rng = np.random.default_rng(problem.seed)
         start = self.robot.validate_q(problem.start_rad, "start")
-        is_valid, motion_valid = self._validity(problem)
+        is_valid, motion_valid = workspace_validity(self.robot, problem.workspace_min_m, problem.workspace_max_m,
+                                                    self._is_valid, self._motion_valid, self.config.edge_resolution_rad)
         real_start: FloatArray | None = None
         start_problem = self._state_problem(start, is_valid, "start", PlanStatus.START_INVALID)
         if start_problem is not None:
@@ -170,32 +172,6 @@ class MotionPlanner:
             outcome, path=path, path_length_rad=path_length_rad(path), max_joint_step_rad=max_joint_step_rad(path),
             min_clearance_m=clearance, detail=f"{outcome.detail}; left the start's padding ({start_problem.detail})",
             start_escape=escape)
-
-    def _validity(self, problem: PlanProblem) -> tuple[StateValidFn, MotionValidFn]:
-        if problem.workspace_min_m is None and problem.workspace_max_m is None:
-            return self._is_valid, self._motion_valid
-        if problem.workspace_min_m is None or problem.workspace_max_m is None:
-            raise ValueError("workspace bounds need both workspace_min_m and workspace_max_m")
-        low = np.asarray(problem.workspace_min_m, dtype=np.float64)
-        high = np.asarray(problem.workspace_max_m, dtype=np.float64)
-        if low.shape != (3,) or high.shape != (3,) or not np.all(np.isfinite(low)) or not np.all(np.isfinite(high)):
-            raise ValueError("workspace_min_m and workspace_max_m must be finite (3,) vectors")
-        if not np.all(low < high):
-            raise ValueError(f"workspace_min_m {low.tolist()} must be below workspace_max_m {high.tolist()} in x, y, z")
-        link = self.robot.config.end_effector_link
-        resolution = self.config.edge_resolution_rad
-
-        def inside(q: FloatArray) -> bool:
-            p = self.robot.frame_pose(q, link)[:3, 3]
-            return bool(np.all(p >= low) and np.all(p <= high))
-
-        def is_valid(q: FloatArray) -> bool:
-            return inside(q) and self._is_valid(q)
-
-        def motion_valid(a: FloatArray, b: FloatArray) -> bool:
-            return self._motion_valid(a, b) and all(inside(q) for q in interpolate_path(np.vstack([a, b]), resolution))
-
-        return is_valid, motion_valid
 
     def _goal_set(self, problem: PlanProblem, start: FloatArray, is_valid: StateValidFn,
                   rng: np.random.Generator) -> FloatArray | PlanOutcome | None:
