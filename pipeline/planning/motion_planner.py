@@ -33,6 +33,7 @@ from robonav.pipeline.planning.shortcut import shortcut_path
 from robonav.pipeline.planning.start_escape import escape_start
 from robonav.pipeline.planning.workspace import workspace_validity
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.robot.turns import nearest_turn_rad
 from robonav.pipeline.types import FloatArray, MotionValidFn, StateValidFn
 
 BASELINES: tuple[str, ...] = ("astar", "dijkstra", "potential_field")
@@ -87,8 +88,11 @@ class MotionPlanner:
         """Plan `problem`; expected failures come back as a status, bad input raises ValueError.
 
         Against a map with a clearance, the start and the goals are anchors: near them the
-        clearance is released (`CollisionWorld.anchored`, `config.surface_allowance_rad`)."""
+        clearance is released (`CollisionWorld.anchored`, `config.surface_allowance_rad`).
+        A continuous joint's goal angle is replaced by its equivalent nearest the start within
+        its range (`turns.py`): the path turns the short way and ends at that angle."""
         t0 = time.perf_counter()
+        problem = self._nearest_turns(problem)
         if not self.world.has_surface_allowance:
             return self._plan(problem, t0)
         # Validity near the anchors differs from query to query: no roadmap outlives one.
@@ -99,6 +103,15 @@ class MotionPlanner:
             anchors += list(goals.reshape(-1, self.robot.dof)) if goals.size % self.robot.dof == 0 else []
         with self.world.anchored(np.array(anchors), self.config.surface_allowance_rad):
             return self._plan(problem, t0)
+
+    def _nearest_turns(self, problem: PlanProblem) -> PlanProblem:
+        turning = self.robot.continuous_mask
+        goals = None if problem.goals_rad is None else np.asarray(problem.goals_rad, dtype=np.float64)
+        if goals is None or not turning.any() or goals.ndim not in (1, 2) or goals.shape[-1] != self.robot.dof:
+            return problem  # nothing wraps, or a malformed goal `_goal_set` refuses by name
+        start = self.robot.validate_q(problem.start_rad, "start")
+        return dataclasses.replace(problem, goals_rad=nearest_turn_rad(
+            goals, start, self.robot.lower_limits_rad, self.robot.upper_limits_rad, turning))
 
     def _plan(self, problem: PlanProblem, t0: float) -> PlanOutcome:
         if problem.planner_id not in PLANNERS:
@@ -251,7 +264,8 @@ class MotionPlanner:
                 details |= {"positions": q.tolist(), "pairs": [f"{a}|{b}" for a, b in self.world.collisions(q)]}
             return PlanOutcome(PlanStatus.GOAL_INVALID,
                                f"every IK solution for {pose.link} is in collision: {result.detail}", details=details)
-        return result.solutions
+        return nearest_turn_rad(result.solutions, start, self.robot.lower_limits_rad, self.robot.upper_limits_rad,
+                                self.robot.continuous_mask)
 
     def _goal_validity(self, is_valid: StateValidFn) -> StateValidFn:
         """`is_valid` for a goal candidate: it is an anchor of its own check (see `plan`)."""
@@ -441,14 +455,11 @@ class MotionPlanner:
                                planning_time_s=planning_time_s)
         goal_index = int(np.argmin(np.max(np.abs(goals - path[-1]), axis=1)))
         return PlanOutcome(
-            PlanStatus.SUCCESS, "ok", path=path, planner_id=planner_id,
-            planning_time_s=planning_time_s,
-            simplification_time_s=simplification_time_s,
-            path_length_rad=path_length_rad(path),
+            PlanStatus.SUCCESS, "ok", path=path, planner_id=planner_id, planning_time_s=planning_time_s,
+            simplification_time_s=simplification_time_s, path_length_rad=path_length_rad(path),
             max_joint_step_rad=max_joint_step_rad(path),
             min_clearance_m=self._sampled_clearance_m(path) if self.config.report_clearance else float("inf"),
-            goal_index=goal_index,
-        )
+            goal_index=goal_index)
 
     def _revalidate(self, path: FloatArray, motion_valid: MotionValidFn) -> bool:
         """Every segment of `path` passes the exact check at the path check resolution.

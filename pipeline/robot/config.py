@@ -16,7 +16,8 @@ config file describing any other URDF must state every one (`robonav robot init`
 
 CONTINUOUS_JOINT_RANGE_RAD = (-2.0 * math.pi, 2.0 * math.pi)
 """Position range planned over for a `continuous` URDF joint unless `position_limits_rad` names
-it: two turns each way, so any goal angle is at most half a turn from an equivalent one inside."""
+it: two turns each way, so from a start within half a turn of 0 every goal angle has an equivalent
+inside at most half a turn away, which the planner goes to (`turns.py`)."""
 
 
 @dataclass(frozen=True)

@@ -151,6 +151,11 @@ class RobotModel:
         return tuple(n for n in self.joint_names if n in self._continuous)
 
     @property
+    def continuous_mask(self) -> np.ndarray:
+        """(dof,) bool: True for the planning joints that are `continuous` (their angles wrap, `turns.py`)."""
+        return np.array([n in self._continuous for n in self.joint_names], dtype=bool)
+
+    @property
     def link_names(self) -> frozenset[str]:
         """Every link of the URDF."""
         return self._link_names
@@ -336,8 +341,9 @@ def _continuous_as_revolute(root: ET.Element, cfg: RobotConfig) -> frozenset[str
 
     Pinocchio models a continuous joint as a unit complex number (nq = 2), which every
     configuration vector here (one value per joint) and the compiled kinematics cannot hold.
-    Planned over `position_limits_rad` or `CONTINUOUS_JOINT_RANGE_RAD` (two turns each way), an
-    angle needs no wrap-around: paths, interpolation and the executor stay linear in it.
+    Planned over `position_limits_rad` or `CONTINUOUS_JOINT_RANGE_RAD` (two turns each way),
+    paths, interpolation and the executor stay linear in the angle; the planner wraps only a
+    query's goals to the equivalent nearest the start (`turns.py`).
 
     Returns:
         Names of the joints changed.

@@ -19,6 +19,7 @@ from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanOutcome, PlanProblem
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.robot.turns import joint_distance_rad
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import Intruder, perceivable_objects, sample_goal
 from robonav.pipeline.sim.scenes import Scene
@@ -155,6 +156,11 @@ class SceneRunner:
         assert self.client.joint_state is not None
         return self.client.joint_state.position.copy()
 
+    def _error_rad(self, goal: np.ndarray) -> float:
+        """Largest joint distance from `goal`, a continuous joint's modulo a turn (the planner
+        ends it on the goal's turn nearest its start)."""
+        return float(np.max(joint_distance_rad(self._q(), goal, self.robot.continuous_mask)))
+
     # --- scene ----------------------------------------------------------------------------
 
     def swap_in(self, scene: Scene) -> None:
@@ -175,7 +181,7 @@ class SceneRunner:
             raise RuntimeError("no occupancy map after the scene swap")
 
     def go_home(self) -> None:
-        if float(np.max(np.abs(self._q() - self.home))) <= HOME_TOLERANCE_RAD:
+        if self._error_rad(self.home) <= HOME_TOLERANCE_RAD:
             return
         for _ in range(2):
             if self._move(self.home, GoalRecord(-1, -1, [], True, False)):
@@ -196,7 +202,7 @@ class SceneRunner:
         if isinstance(execution, ErrorReply):
             raise RuntimeError(f"could not bring the arm home: {execution.code}: {execution.message}")
         self.client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + self.cfg.demo.goal_timeout_s)
-        if float(np.max(np.abs(self._q() - self.home))) > HOME_TOLERANCE_RAD:
+        if self._error_rad(self.home) > HOME_TOLERANCE_RAD:
             raise RuntimeError("could not bring the arm home")
 
     def run(self, index: int, scene: Scene, *, moving: bool, rng: np.random.Generator) -> dict[str, Any]:
@@ -352,9 +358,8 @@ class SceneRunner:
                 armed = True
             record.result = self._follow(trajectory_id, plan.path, execution.duration_s, record, planned_on)
             if record.result == "succeeded":
-                self.client.wait_for(lambda: float(np.max(np.abs(self._q() - goal))) <= 0.1 * self.cfg.demo.goal_tolerance_rad,
-                                     2.0)
-                record.final_error_rad = round(float(np.max(np.abs(self._q() - goal))), 5)
+                self.client.wait_for(lambda: self._error_rad(goal) <= 0.1 * self.cfg.demo.goal_tolerance_rad, 2.0)
+                record.final_error_rad = round(self._error_rad(goal), 5)
                 record.reached = record.final_error_rad <= self.cfg.demo.goal_tolerance_rad
                 if record.reached:
                     return True

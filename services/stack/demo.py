@@ -28,6 +28,7 @@ from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.perception.map_readiness import map_complete
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.robot.turns import joint_distance_rad
 from robonav.pipeline.wire.codes import ExecutionState
 from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, PlanResponse
 from robonav.services.client import QueryFailed, RobonavClient
@@ -168,10 +169,14 @@ def move_to_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfi
     result = client.wait_for_trajectory(trajectory_id, 0.0)
     # The arm lags the last setpoint a little (and more on a loaded machine): let it settle
     # well inside the tolerance, or give up after a while and judge where it is.
-    client.wait_for(lambda: float(np.max(np.abs(client.joint_state.position - goal))) <= 0.1 * cfg.demo.goal_tolerance_rad,
-                    SETTLE_TIMEOUT_S)
-    final = client.joint_state.position
-    error = float(np.max(np.abs(final - goal)))
+    # A continuous joint ends on the goal's turn nearest its start (the planner's shortest turn).
+    turning = truth.robot.continuous_mask
+
+    def error_rad() -> float:
+        return float(np.max(joint_distance_rad(client.joint_state.position, goal, turning)))
+
+    client.wait_for(lambda: error_rad() <= 0.1 * cfg.demo.goal_tolerance_rad, SETTLE_TIMEOUT_S)
+    error = error_rad()
     record.update(execution_s=round(time.monotonic() - started, 3), trajectory_duration_s=round(execution.duration_s, 3),
                   result=result, final_error_rad=round(error, 5),
                   reached=bool(result == "succeeded" and error <= cfg.demo.goal_tolerance_rad))

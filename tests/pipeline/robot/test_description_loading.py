@@ -101,10 +101,10 @@ def test_prismatic_and_continuous_joints_move_and_plan(description: tuple[Path, 
         np.testing.assert_allclose(kinematics.link_pose_stack(q), robot.link_pose_stack(q), atol=1e-9)
 
     world = CollisionWorld(robot)
-    # A low post in the way of the turn from -2.5 to 2.5 rad (through 0, where it stands): the
-    # carriage must rise on the prismatic joint for the arm to pass over it.
+    # A low post in the way of the turn from -1 to 1 rad (the short way, through 0, where it
+    # stands): the carriage must rise on the prismatic joint for the arm to pass over it.
     world.set_objects([SceneObject("post", "box", (0.4, 0.0, 0.3), size_m=(0.08, 0.08, 0.4))])
-    start, goal = np.array([0.1, -2.5]), np.array([0.1, 2.5])
+    start, goal = np.array([0.1, -1.0]), np.array([0.1, 1.0])
     assert not world.in_collision(start) and not world.in_collision(goal)
     assert not world.motion_valid(start, goal, 0.02), "the straight turn must hit the post"
     planner = MotionPlanner(robot, world, PlannerConfig(edge_resolution_rad=0.02))
