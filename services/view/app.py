@@ -68,6 +68,8 @@ class ViewOptions:
     """Most occupancy redraws per second [Hz]; unchanged maps are not resent at all."""
     path_step_rad: float = 0.05
     """Joint step between samples of the end-effector trace [rad]."""
+    spheres: bool = False
+    """Show the planner's collision spheres at start (the "Collision spheres" toggle otherwise)."""
     token: str | None = None
     """Required on any address but loopback: the page and its websocket are served only to a
     browser that opened `...?token=<token>` (then a cookie)."""
@@ -138,7 +140,8 @@ class ViewNode:
         self.server.initial_camera.fov = CAMERA_FOV_RAD
         z_range = (float(cfg.perception.workspace_min_m[2]), float(cfg.perception.workspace_max_m[2]) * 0.8)
         self.layers = SceneLayers(self.server, RobotModel.from_config(cfg.robot), list(self.cameras.values()),
-                                  workspace_z_m=z_range, path_step_rad=options.path_step_rad)
+                                  workspace_z_m=z_range, path_step_rad=options.path_step_rad,
+                                  show_spheres=options.spheres)
         self.client = RobonavClient(session, cfg.cell)
         self.controls = ViewControls(self.server, self.layers, self.client)
         keys = Keys(cfg.cell)
@@ -365,6 +368,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="points per camera sent to the browser (default %(default)s)")
     parser.add_argument("--cloud-rate-hz", type=float, default=ViewOptions.cloud_rate_hz,
                         help="most cloud redraws per camera and second (default %(default)s)")
+    parser.add_argument("--spheres", action="store_true",
+                        help="show the planner's collision spheres on the robot from the start (a layer toggle "
+                             "otherwise)")
     parser.add_argument("--snapshot", metavar="OUT.png", help="render the scene once in headless Chromium, write a PNG, exit")
     parser.add_argument("--wait-s", type=float, default=20.0, help="--snapshot: longest wait for data (default %(default)s)")
     parser.add_argument("--size", default="1280x800", help="--snapshot: picture size in pixels, WIDTHxHEIGHT (default %(default)s)")
@@ -397,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = load_cli_config(args.config, args.zenoh_config)
         options = ViewOptions(host=args.host, port=args.port, max_cloud_points=args.max_cloud_points,
-                              cloud_rate_hz=args.cloud_rate_hz, token=view_token(args))
+                              cloud_rate_hz=args.cloud_rate_hz, spheres=args.spheres, token=view_token(args))
         width, height = (int(v) for v in args.size.lower().split("x"))
         require(width > 0 and height > 0, f"--size must be WIDTHxHEIGHT in pixels, got {args.size!r}")
     except (ConfigError, ValueError) as exc:

@@ -21,7 +21,8 @@ log = logging.getLogger("robonav.view")
 
 CloudColoring = Literal["height", "cluster"]
 LAYER_LABELS = {"robot": "Robot", "ghost": "Ghost at goal", "path": "Path", "cloud": "Cloud", "voxels": "Occupied voxels",
-                "clusters": "Clusters", "objects": "Planner objects", "cameras": "Camera frustums"}
+                "clusters": "Clusters", "objects": "Planner objects", "cameras": "Camera frustums",
+                "spheres": "Collision spheres"}
 IN_COLLISION_CODES = ("START_IN_COLLISION", "GOAL_IN_COLLISION")
 PLAN_TIMEOUT_S = 30.0
 """Longest wait for the planner's reply to a GUI plan [s]."""
@@ -38,7 +39,9 @@ class ViewControls:
         self._busy = threading.Lock()
         gui = server.gui
         with gui.add_folder("Layers"):
-            self.toggles = {name: gui.add_checkbox(LAYER_LABELS[name], initial_value=True) for name in LAYERS}
+            self.toggles = {name: gui.add_checkbox(LAYER_LABELS[name],
+                                                   initial_value=name != "spheres" or layers.roots[name].visible)
+                            for name in LAYERS}
             for name, box in self.toggles.items():
                 box.on_update(lambda _event, name=name: self.layers.set_visible(name, self.toggles[name].value))
             self.coloring = gui.add_dropdown("Cloud colours", ("height", "cluster"), initial_value="height")

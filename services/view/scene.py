@@ -29,9 +29,11 @@ from robonav.pipeline.wire.joint_order import positions_by_name
 from robonav.services.config import perceived_world_from_camera
 from robonav.services.view.clusters import ClusterBox
 from robonav.services.view.planning_scene import PlanningSceneLayer
+from robonav.services.view.spheres import SphereLayer
 
-LAYERS: tuple[str, ...] = ("robot", "ghost", "path", "cloud", "voxels", "clusters", "objects", "cameras")
-"""Toggleable layers; each is the scene node `/<name>`."""
+LAYERS: tuple[str, ...] = ("robot", "ghost", "path", "cloud", "voxels", "clusters", "objects", "cameras", "spheres")
+"""Toggleable layers; each is the scene node `/<name>`. All show at start but `spheres` (the
+planner's collision spheres, `spheres.py`), which shows only when asked for."""
 
 PATH_RGB = (255, 0, 200)
 """Executed path trace: a magenta that neither the robot's greys nor the height colormap use
@@ -150,7 +152,8 @@ class SceneLayers:
     """The viser scene of one robot cell; every method is safe to call from any thread."""
 
     def __init__(self, server: viser.ViserServer, robot: RobotModel, cameras: Sequence[CameraConfig], *,
-                 workspace_z_m: tuple[float, float] = (0.0, 1.2), path_step_rad: float = 0.05) -> None:
+                 workspace_z_m: tuple[float, float] = (0.0, 1.2), path_step_rad: float = 0.05,
+                 show_spheres: bool = False) -> None:
         self.server = server
         self.robot = robot
         self.z_range_m = workspace_z_m
@@ -159,7 +162,8 @@ class SceneLayers:
         scene = server.scene
         scene.set_up_direction("+z")
         scene.add_grid("/grid", width=2.0, height=2.0, cell_size=0.1, plane="xy", position=(0.5, 0.0, 0.0))
-        self.roots = {name: scene.add_frame(f"/{name}", show_axes=False) for name in LAYERS if name not in ("robot", "ghost")}
+        self.roots = {name: scene.add_frame(f"/{name}", show_axes=False) for name in LAYERS
+                      if name not in ("robot", "ghost", "spheres")}
         self.robot_pose = UrdfPose(server, robot, "/robot")
         self.ghost_pose = UrdfPose(server, robot, "/ghost", color_rgba=GHOST_RGBA)
         self.roots["robot"] = self.robot_pose.frame
@@ -174,6 +178,9 @@ class SceneLayers:
         for camera in cameras:
             self._add_frustum(camera)
         self.planning = PlanningSceneLayer(server, robot, self._lock)
+        self.spheres = SphereLayer(server, robot, self._lock)
+        self.roots["spheres"] = self.spheres.root
+        self.spheres.show(show_spheres)
 
     def _add_frustum(self, camera: CameraConfig) -> None:
         world_from_camera = perceived_world_from_camera(camera)
@@ -189,11 +196,15 @@ class SceneLayers:
             if layer == "ghost":
                 self._ghost_wanted = visible
                 visible = visible and self._dense_path is not None
+            if layer == "spheres":
+                self.spheres.show(visible)  # built on first show
+                return
             self.roots[layer].visible = visible
 
     def set_robot_joints(self, names: Sequence[str], positions: Sequence[float]) -> None:
         with self._lock:
             self.robot_pose.set_joints(names, positions)
+            self.spheres.follow(names, positions)
 
     def show_cloud(self, camera_id: str, points_m: FloatArray, colors: npt.NDArray[np.uint8]) -> None:
         """Replace one camera's cloud: (N, 3) world points [m], (N, 3) uint8 colours."""
