@@ -181,6 +181,7 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
     distances = [s["min_distance_m"] for s in scenes if s["min_distance_m"] is not None]
     padding = cfg.robot.padding_m
     summary: dict[str, Any] = {
+        "robot": cfg.robot.name, "joint_names": list(cfg.robot.joint_names),
         "scenes": len(scenes), "seed": args.seed, "source": args.source, "noise": not args.no_noise,
         "guard": not args.no_guard, "goals": len(goals), "goals_feasible": len(feasible),
         "goals_reached": sum(g["reached"] for g in goals),
@@ -239,6 +240,7 @@ def _count(items: list[str]) -> dict[str, int]:
 
 def table(summary: dict[str, Any]) -> str:
     rows = [
+        ("robot (joints)", f"{summary.get('robot')} ({len(summary.get('joint_names', []))})"),
         ("scenes (moving obstacle / box slid in)",
          f"{summary['scenes']} ({summary['moving_scenes']} / {summary.get('intruders', 0)})"),
         ("goals: feasible / unreachable", f"{summary['goals']}: {summary['goals_feasible']} / {summary['goals_unreachable']}"),

@@ -44,6 +44,58 @@ def write_config(directory: Path, name: str, **sections: dict) -> Path:
     return path
 
 
+# A cylindrical robot for the `--robot FILE` tests: a column turning without end (continuous), a carriage sliding up it and
+# a boom sliding out of the carriage (prismatic). Primitives only, so pybullet and the planner
+# load it without meshes.
+TURN_LIFT_REACH_URDF = """<?xml version="1.0"?>
+<robot name="turn_lift_reach">
+  <link name="foot"><collision><origin xyz="0 0 0.05"/><geometry><box size="0.2 0.2 0.1"/></geometry></collision>
+    <inertial><mass value="5"/><inertia ixx="0.02" iyy="0.02" izz="0.02" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="column"><collision><origin xyz="0 0 0.4"/><geometry><cylinder radius="0.04" length="0.8"/></geometry></collision>
+    <inertial><mass value="2"/><inertia ixx="0.06" iyy="0.06" izz="0.002" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="carriage"><collision><geometry><box size="0.12 0.12 0.08"/></geometry></collision>
+    <inertial><mass value="1"/><inertia ixx="0.002" iyy="0.002" izz="0.002" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="boom"><collision><origin xyz="-0.2 0 0"/><geometry><box size="0.4 0.04 0.04"/></geometry></collision>
+    <inertial><mass value="0.5"/><inertia ixx="0.0001" iyy="0.007" izz="0.007" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="tool"><collision><geometry><sphere radius="0.03"/></geometry></collision>
+    <inertial><mass value="0.1"/><inertia ixx="0.0001" iyy="0.0001" izz="0.0001" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <joint name="turn" type="continuous"><parent link="foot"/><child link="column"/><origin xyz="0 0 0.1"/>
+    <axis xyz="0 0 1"/><limit effort="50" velocity="1.5"/></joint>
+  <joint name="lift" type="prismatic"><parent link="column"/><child link="carriage"/><origin xyz="0 0 0.15"/>
+    <axis xyz="0 0 1"/><limit lower="0.0" upper="0.6" effort="100" velocity="0.5"/></joint>
+  <joint name="reach" type="prismatic"><parent link="carriage"/><child link="boom"/><origin xyz="0 0 0"/>
+    <axis xyz="1 0 0"/><limit lower="0.15" upper="0.45" effort="50" velocity="0.5"/></joint>
+  <joint name="tool_joint" type="fixed"><parent link="boom"/><child link="tool"/><origin xyz="0.03 0 0"/></joint>
+</robot>
+"""
+
+TURN_LIFT_REACH_ROBOT_FILE = """name: turn_lift_reach
+urdf: robot.urdf
+base_link: foot
+end_effector_link: tool
+joint_names: [turn, lift, reach]
+max_velocity_rad_s: [1.5, 0.5, 0.5]
+max_acceleration_rad_s2: [6.0, 2.0, 2.0]
+max_jerk_rad_s3: [3000.0, 1000.0, 1000.0]
+home_position_rad: [0.0, 0.2, 0.15]
+padding_m: 0.01
+allowed_collision_pairs:
+  - [foot, column]
+  - [column, carriage]
+  - [carriage, boom]
+  - [column, boom]   # the boom slides through a slot in the column
+  - [boom, tool]
+"""
+
+
+def write_turn_lift_reach(directory: Path) -> Path:
+    """Write the cylindrical test robot's URDF and robot file into `directory`; the robot file's path."""
+    (directory / "robot.urdf").write_text(TURN_LIFT_REACH_URDF, encoding="utf-8")
+    path = directory / "turn_lift_reach.yaml"
+    path.write_text(TURN_LIFT_REACH_ROBOT_FILE, encoding="utf-8")
+    return path
+
+
 def wait_until_served(session: zenoh.Session, key: str, timeout_s: float = 10.0, *, served: bool = True) -> None:
     """Wait until `session` sees a queryable on `key` (or, with `served=False`, none): a query
     sent right after another session declared one may reach the router before the declaration

@@ -1,4 +1,5 @@
-"""`robonav campaign`: seeded scene lists, the report, and a 10-scene campaign on the live services."""
+"""`robonav campaign`: seeded scene lists, the report, a 10-scene campaign on the live services, and
+a one-scene campaign of another robot (`--robot FILE`)."""
 
 from __future__ import annotations
 
@@ -12,10 +13,12 @@ import pytest
 import yaml
 
 from robonav.pipeline.config import ConfigError
+from robonav.pipeline.robot.model import RobotModel
 from robonav.services.campaign.run import campaign_config, load_scenes, moving_scene_indices, parse_args, summarize, table
 from robonav.services.config import load_config
+from robonav.services.stack.robot_cell import read_robot
 
-from ..conftest import free_port, write_config
+from ..conftest import free_port, write_config, write_turn_lift_reach
 
 REQUIRED_FIELDS = ("scenes", "goals", "goals_reached", "goals_unreachable", "contacts", "limit_violations",
                    "min_clearance_m", "padding_m", "planning_ms", "replans", "perception_latency_ms")
@@ -122,3 +125,28 @@ def test_a_ten_scene_campaign_is_safe_in_static_scenes(campaign_run: tuple[int, 
         [(s["scene"], s["min_distance_m"], s["min_distance_pair"]) for s in static]
     feasible = [g for s in static for g in s["goals"] if g["feasible"]]
     assert sum(g["reached"] for g in feasible) >= 0.8 * len(feasible), [g for g in feasible if not g["reached"]]
+
+
+def test_a_campaign_runs_another_robot_with_goals_drawn_for_its_joints(tmp_path: Path) -> None:
+    """The cylindrical test robot (a continuous joint, two prismatic ones), one scene, two goals:
+    its own cell and goals, nothing touched, no setpoint beyond its limits."""
+    robot_file = write_turn_lift_reach(tmp_path)
+    config = write_config(tmp_path, "stack.yaml", zenoh={"connect": [f"tcp/127.0.0.1:{free_port()}"]})
+    out = tmp_path / "campaign.json"
+    run = subprocess.run([sys.executable, "-m", "robonav.services.cli", "campaign", "--scenes", "1", "--seed", "4",
+                          "--goals-per-scene", "2", "--moving", "0", "--velocity-scaling", "1.0",
+                          "--extra-cameras", "none", "--robot", str(robot_file), "--config", str(config),
+                          "--json", str(out)], capture_output=True, text=True, timeout=400)
+    assert out.exists(), run.stderr[-3000:]
+    summary = json.loads(out.read_text(encoding="utf-8"))
+    assert run.returncode == 0, (summary["contact_examples"], summary["limit_violation_examples"], run.stderr[-3000:])
+    assert summary["robot"] == "turn_lift_reach" and summary["joint_names"] == ["turn", "lift", "reach"]
+    assert "turn_lift_reach (3)" in run.stdout  # the table names the robot
+    assert summary["scenes"] == 1 and summary["goals"] == 2 and summary["contacts"] == 0
+    assert summary["limit_violations"] == 0 and summary["setpoints_checked"] > 0
+    assert summary["service_exit_codes"] == {"router": 0, "sim": 0, "perception": 0, "planner": 0, "executor": 0}
+    robot = RobotModel.from_config(read_robot(robot_file))
+    goals = [g for s in summary["per_scene"] for g in s["goals"]]
+    for goal in goals:
+        assert len(goal["goal_rad"]) == 3 and not robot.check_joint_limits(goal["goal_rad"]), goal["goal_rad"]
+    assert summary["goals_feasible"] >= 1 and summary["goals_reached_feasible"] >= 1, [g["errors"] for g in goals]
