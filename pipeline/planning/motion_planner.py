@@ -33,7 +33,6 @@ from robonav.pipeline.planning.shortcut import shortcut_path
 from robonav.pipeline.planning.start_escape import escape_start
 from robonav.pipeline.planning.workspace import workspace_validity
 from robonav.pipeline.robot.model import RobotModel
-from robonav.pipeline.robot.turns import nearest_turn_rad
 from robonav.pipeline.types import FloatArray, MotionValidFn, StateValidFn
 
 BASELINES: tuple[str, ...] = ("astar", "dijkstra", "potential_field")
@@ -110,8 +109,7 @@ class MotionPlanner:
         if goals is None or not turning.any() or goals.ndim not in (1, 2) or goals.shape[-1] != self.robot.dof:
             return problem  # nothing wraps, or a malformed goal `_goal_set` refuses by name
         start = self.robot.validate_q(problem.start_rad, "start")
-        return dataclasses.replace(problem, goals_rad=nearest_turn_rad(
-            goals, start, self.robot.lower_limits_rad, self.robot.upper_limits_rad, turning))
+        return dataclasses.replace(problem, goals_rad=self.robot.nearest_turn_rad(goals, start))
 
     def _plan(self, problem: PlanProblem, t0: float) -> PlanOutcome:
         if problem.planner_id not in PLANNERS:
@@ -264,8 +262,7 @@ class MotionPlanner:
                 details |= {"positions": q.tolist(), "pairs": [f"{a}|{b}" for a, b in self.world.collisions(q)]}
             return PlanOutcome(PlanStatus.GOAL_INVALID,
                                f"every IK solution for {pose.link} is in collision: {result.detail}", details=details)
-        return nearest_turn_rad(result.solutions, start, self.robot.lower_limits_rad, self.robot.upper_limits_rad,
-                                self.robot.continuous_mask)
+        return self.robot.nearest_turn_rad(result.solutions, start)
 
     def _goal_validity(self, is_valid: StateValidFn) -> StateValidFn:
         """`is_valid` for a goal candidate: it is an anchor of its own check (see `plan`)."""

@@ -24,6 +24,7 @@ from robonav.pipeline.robot.link_geometry import (
     package_search_paths,
     parse_collision_shapes,
 )
+from robonav.pipeline.robot.turns import nearest_turn_rad
 from robonav.pipeline.types import FloatArray
 
 PYBULLET_DATA_PREFIX = "pybullet_data:"
@@ -154,6 +155,11 @@ class RobotModel:
     def continuous_mask(self) -> np.ndarray:
         """(dof,) bool: True for the planning joints that are `continuous` (their angles wrap, `turns.py`)."""
         return np.array([n in self._continuous for n in self.joint_names], dtype=bool)
+
+    def nearest_turn_rad(self, q: FloatArray, reference_rad: FloatArray) -> FloatArray:
+        """`q` (dof,) or (G, dof) with each continuous joint moved by whole turns to the angle
+        nearest `reference_rad` (dof,) within its limits; other joints as given (`turns.py`)."""
+        return nearest_turn_rad(q, reference_rad, self._lower, self._upper, self.continuous_mask)
 
     @property
     def link_names(self) -> frozenset[str]:

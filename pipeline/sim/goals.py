@@ -87,7 +87,9 @@ def sample_goal(world: CollisionWorld, rng: np.random.Generator, start: npt.Arra
     margin = 0.05 * (high - low)
     region_low, region_high = np.asarray(region_min_m, float), np.asarray(region_max_m, float)
     for _ in range(attempts):
-        q = rng.uniform(low + margin, high - margin)
+        # A continuous joint's goal on the turn nearest the start: where the planner ends it,
+        # so the move, the straight-line test and the recorded goal are the arm's own.
+        q = robot.nearest_turn_rad(rng.uniform(low + margin, high - margin), q_start)
         if np.max(np.abs(q - q_start)) < min_move_rad:
             continue
         position = robot.frame_pose(q, link)[:3, 3]

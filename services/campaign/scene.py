@@ -224,7 +224,8 @@ class SceneRunner:
             start = self._q()
             seed = self.seed + index * 100 + g
             if goals:
-                goal, detour = goals[g], not truth.motion_valid(start, goals[g], 0.01)
+                goal = self.robot.nearest_turn_rad(goals[g], start)  # the turn the planner ends on
+                detour = not truth.motion_valid(start, goal, 0.01)
                 reference = self.reference.plan(PlanProblem(start_rad=start, goals_rad=goal, allowed_planning_time_s=2.0,
                                                             seed=seed))
             else:

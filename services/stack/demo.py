@@ -119,9 +119,10 @@ def move_to_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfi
     execute, wait, judge."""
     assert client.joint_state is not None
     start = client.joint_state.position.copy()
-    # Blocked means the goal needs a detour around a real obstacle.
+    # Blocked means the goal needs a detour around a real obstacle, on the turn the planner takes.
+    planned_goal = truth.robot.nearest_turn_rad(goal, start)
     record: dict[str, Any] = {"index": index, "goal_rad": goal.round(4).tolist(),
-                              "straight_line_blocked": not truth.motion_valid(start, goal, 0.01)}
+                              "straight_line_blocked": not truth.motion_valid(start, planned_goal, 0.01)}
     refusals: list[str] = []
     for attempt in range(PLAN_ATTEMPTS):
         asked = time.monotonic()

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import math
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.planning.motion_planner import MotionPlanner, PlanProblem
 from robonav.pipeline.planning.result import PlanStatus
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.goals import (
@@ -58,6 +62,39 @@ def test_sampled_goals_are_free_clear_in_the_region_and_detour_when_asked(seed: 
     first = sample_goal(world, np.random.default_rng(seed), HOME, link="panda_hand", region_min_m=REGION[0],
                         region_max_m=REGION[1], min_clearance_m=0.05, want_blocked=True)
     assert again is not None and first is not None and np.array_equal(again.q, first.q)
+
+
+# An arm turning without end (continuous) on a foot, a slide along it (prismatic).
+SPINNER_URDF = """<?xml version="1.0"?>
+<robot name="spinner">
+  <link name="foot"><collision><geometry><box size="0.2 0.2 0.1"/></geometry></collision></link>
+  <link name="arm"><collision><origin xyz="0.15 0 0"/><geometry><box size="0.3 0.04 0.04"/></geometry></collision></link>
+  <link name="slider"><collision><geometry><sphere radius="0.03"/></geometry></collision></link>
+  <joint name="spin" type="continuous"><parent link="foot"/><child link="arm"/><origin xyz="0 0 0.1"/>
+    <axis xyz="0 0 1"/><limit effort="20" velocity="2"/></joint>
+  <joint name="slide" type="prismatic"><parent link="arm"/><child link="slider"/><origin xyz="0.1 0 0"/>
+    <axis xyz="1 0 0"/><limit lower="0.0" upper="0.2" effort="20" velocity="0.5"/></joint>
+</robot>
+"""
+
+
+def test_a_continuous_joints_goal_is_drawn_on_the_turn_nearest_the_start(tmp_path: Path) -> None:
+    urdf = tmp_path / "spinner.urdf"
+    urdf.write_text(SPINNER_URDF, encoding="utf-8")
+    robot = RobotModel.from_config(RobotConfig(
+        name="spinner", urdf=str(urdf), base_link="foot", end_effector_link="slider", joint_names=("spin", "slide"),
+        max_velocity_rad_s=(2.0, 0.5), max_acceleration_rad_s2=(8.0, 2.0), max_jerk_rad_s3=(4000.0, 1000.0),
+        home_position_rad=(0.0, 0.0)))
+    world = CollisionWorld(robot, padding_m=0.0)
+    start = np.array([3.0, 0.1])
+    rng = np.random.default_rng(0)
+    drawn = [sample_goal(world, rng, start, link="slider", region_min_m=[-1, -1, -1], region_max_m=[1, 1, 1],
+                         min_clearance_m=0.0) for _ in range(30)]
+    turns = np.array([g.q[0] for g in drawn if g is not None])
+    assert len(turns) == 30
+    # Uniform over the -2 pi..2 pi range, most draws would be more than half a turn away.
+    assert np.all(np.abs(turns - start[0]) <= math.pi + 1e-9)
+    assert np.all(turns >= robot.lower_limits_rad[0]) and np.all(turns <= robot.upper_limits_rad[0])
 
 
 def test_no_goal_when_nothing_qualifies() -> None:
