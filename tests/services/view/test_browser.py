@@ -1,7 +1,7 @@
 """The view in a real browser: a `robonav view` process fed over real Zenoh on loopback, opened
 in headless Chromium (Debian's, software WebGL). Once two screenshots in a row are identical,
-the path's colour must be where the path projects, and hiding the robot must change the
-pixels where the robot projects."""
+the path's colour must be where the path projects, and hiding the robot (showing the collision
+spheres) must change the pixels where the robot (the spheres) project."""
 
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ pytest.importorskip("playwright", reason="the `view` extra (playwright) is not i
 
 from PIL import Image  # noqa: E402
 
+from robonav.pipeline.collision.spheres.sphere_model import robot_sphere_model  # noqa: E402
 from robonav.pipeline.robot.model import RobotModel  # noqa: E402
 from robonav.pipeline.wire.messages import (  # noqa: E402
     ExecutorPath,
@@ -38,6 +39,7 @@ from robonav.services.stack.up import Stack  # noqa: E402
 from robonav.services.view.app import CAMERA_FOV_RAD, CAMERA_LOOK_AT_M, CAMERA_POSITION_M  # noqa: E402
 from robonav.services.view.browser import find_chromium, open_page, page_url, stable_screenshot  # noqa: E402
 from robonav.services.view.scene import PATH_RGB, interpolate_path  # noqa: E402
+from robonav.services.view.spheres import world_spheres  # noqa: E402
 
 from ..conftest import free_port, write_config  # noqa: E402
 
@@ -204,6 +206,40 @@ def test_browser_draws_the_planner_objects(scene: Scene) -> None:
     low, high = box_px.min(axis=0) - 10, box_px.max(axis=0) + 10
     inside = (xs >= low[0]) & (xs <= high[0]) & (ys >= low[1]) & (ys <= high[1])
     assert changed.sum() > 100 and inside.mean() > 0.95, (changed.sum(), inside.mean())
+
+
+def test_browser_draws_the_collision_spheres(scene: Scene) -> None:
+    """Ticking 'Collision spheres' changes the pixels where the planner's spheres project at the
+    arm's joint state, and little beyond them."""
+    url = scene.wait_for_view()
+    camera = (f"initialCameraPosition={','.join(map(str, CAMERA_POSITION_M))}"
+              f"&initialCameraLookAt={','.join(map(str, CAMERA_LOOK_AT_M))}&initialCameraUp=0,0,1"
+              f"&initialCameraFov={CAMERA_FOV_RAD}")
+    with open_page(page_url(f"{url}?{camera}"), width=WIDTH, height=HEIGHT) as page:
+        canvas = page.locator("canvas").first
+        without = rgb(stable_screenshot(page, canvas))
+        toggle = page.get_by_role("checkbox", name="Collision spheres", exact=True)
+        toggle.click()
+        # The view covers the robot on first show (seconds): a still picture may come first.
+        deadline = time.monotonic() + SNAPSHOT_TIMEOUT_S
+        while True:
+            with_spheres = rgb(stable_screenshot(page, canvas))
+            changed = np.any(np.abs(with_spheres - without) > 8, axis=2)
+            if changed.sum() > 100 or time.monotonic() > deadline:
+                break
+            page.wait_for_timeout(500)
+        toggle.click()  # the layer's state is the server's: leave it as found
+    height, width, _ = with_spheres.shape
+    centers, radii = world_spheres(scene.robot, robot_sphere_model(scene.robot), scene.q_robot)
+    centers_px = project(centers, width, height)
+    hits = near(changed, centers_px, radius=3)
+    assert hits.mean() >= 0.8, f"the spheres changed nothing near {hits.size - hits.sum()} of {hits.size} centers"
+    # Beyond the spheres' outline little changes: a margin of the largest radius seen from the camera.
+    margin_px = (height / 2.0) / np.tan(CAMERA_FOV_RAD / 2.0) * radii.max() / 1.5
+    ys, xs = np.nonzero(changed)
+    low, high = centers_px.min(axis=0) - margin_px, centers_px.max(axis=0) + margin_px
+    inside = (xs >= low[0]) & (xs <= high[0]) & (ys >= low[1]) & (ys <= high[1])
+    assert inside.mean() > 0.95, inside.mean()
 
 
 def test_view_snapshot_fails_clearly_without_a_robot(scene: Scene, tmp_path: Path) -> None:
