@@ -192,13 +192,13 @@ class SceneLayers:
         self.server.scene.add_label(f"/cameras/{camera.camera_id}/label", camera.camera_id, position=(0.0, 0.0, 0.0))
 
     def set_visible(self, layer: str, visible: bool) -> None:
+        if layer == "spheres":  # built on first show, outside the lock (`SphereLayer.show`)
+            self.spheres.show(visible)
+            return
         with self._lock:
             if layer == "ghost":
                 self._ghost_wanted = visible
                 visible = visible and self._dense_path is not None
-            if layer == "spheres":
-                self.spheres.show(visible)  # built on first show
-                return
             self.roots[layer].visible = visible
 
     def set_robot_joints(self, names: Sequence[str], positions: Sequence[float]) -> None:
