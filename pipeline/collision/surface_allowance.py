@@ -3,7 +3,8 @@
 A map given with the voxels the sensors saw and the inflation it was published with
 (`CollisionWorld.set_octree(..., seen_voxels_m, clearance_m=...)`), and optionally the seen
 points (`surface_m`), is checked against its *surface*: the cells of a grid nested in the
-voxels that hold seen points, or the seen voxels themselves without points.
+voxels that hold seen points and the faces of the seen voxels that hold none (filled below a
+surface, completed support), or the seen voxels themselves without points.
 
 - Away from the anchors the padded links must keep `clearance_m` off the surface. The sphere
   broad phase checks exactly that (spheres grown by the clearance against the surface cells);
@@ -95,6 +96,7 @@ class SurfaceAllowance:
             seen_keys = _packed_keys(seen, resolution_m)
             surface = surface[np.isin(_packed_keys(surface - 1e-9, resolution_m), seen_keys)
                               | np.isin(_packed_keys(surface + 1e-9, resolution_m), seen_keys)]
+            surface = np.vstack([surface, _faces_of_voxels_without_points(seen, resolution_m, surface, surface_res)])
         self._surface_octree = octree_of_centers(seen if surface is None else surface, surface_res)
         self._map_clearance_m = float(clearance_m)
         if self._broad_phase is not None:
@@ -194,6 +196,33 @@ def _tier(distance_sq: float, radius_sq: float) -> int:
     if distance_sq >= radius_sq:
         return -1
     return min(TIERS - 1, int(TIERS * math.sqrt(distance_sq / radius_sq)))
+
+
+def _faces_of_voxels_without_points(seen_m: FloatArray, resolution_m: float, surface_m: FloatArray,
+                                    cell_m: float) -> FloatArray:
+    """Centers of the surface cells on the faces of the seen voxels that hold no seen point (K, 3) [m].
+
+    A map holds voxels no point of the surface lies in: support completed under shadows, space
+    filled below what was seen, voxels kept by the map's own history. They were judged occupied,
+    so the links keep off them too, at their faces: a face shared with another such voxel is
+    inside what is occupied and is left out; one against a voxel with points is kept.
+    """
+    voxels = np.floor(seen_m / resolution_m).astype(np.int64)
+    empty = voxels[~np.isin(_packed_keys(seen_m, resolution_m), _packed_keys(surface_m, resolution_m))]
+    if not empty.shape[0]:
+        return np.zeros((0, 3))
+    n = int(round(resolution_m / cell_m))
+    empty_keys = _packed_keys((empty + 0.5) * resolution_m, resolution_m)
+    grid = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), axis=-1).reshape(-1, 2)
+    faces = []
+    for axis in range(3):
+        for side in (0, n - 1):
+            step = np.zeros(3, dtype=np.int64)
+            step[axis] = 1 if side else -1
+            exposed = empty[~np.isin(_packed_keys((empty + step + 0.5) * resolution_m, resolution_m), empty_keys)]
+            cells = np.insert(grid, axis, side, axis=1)  # (n*n, 3) cell indices on this face
+            faces.append((exposed[:, None, :] * resolution_m + (cells[None] + 0.5) * cell_m).reshape(-1, 3))
+    return np.vstack(faces)
 
 
 def _packed_keys(points_m: FloatArray, resolution_m: float) -> np.ndarray:

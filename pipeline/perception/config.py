@@ -35,7 +35,8 @@ class PerceptionConfig:
     One camera never sees an object's far side, and OctoMap leaves that space unknown, which
     the planner treats as free. Assuming what is seen rests on solid matter (true for objects
     on a table or floor; conservative under overhangs) fills objects' unseen interiors and
-    back halves. Rays that later pass through the filled space clear it as usual."""
+    back halves. Space the frame itself sees through (under a shelf board, seen through its
+    opening) is not filled, and rays of later frames that pass through filled space clear it."""
     depth_edge_jump_m: float = 0.02
     """Flying pixel filter: a pixel whose depth differs from every 4-neighbour's by more than
     this (or than 4 pixel footprints, for surfaces at grazing angles) lies between surfaces,

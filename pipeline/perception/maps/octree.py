@@ -109,7 +109,8 @@ class OccupancyMap:
         if origin.shape != (3,) or not np.isfinite(origin).all():
             raise ValueError(f"sensor_origin_world must be 3 finite numbers, got {origin.tolist()}")
         if clear_only_world is not None:
-            crossed = self._crossed_occupied_keys(validate_points(clear_only_world, "clear_only_world"), origin)
+            crossed = self._crossed_keys(self.occupied_centers_m(), validate_points(clear_only_world, "clear_only_world"),
+                                         origin)
             # This scan's hits win over its misses, as within one octomap insertPointCloud.
             missed = np.setdiff1d(crossed, _pack_keys(_centers_to_keys(pts, self.resolution_m)))
             if missed.size:
@@ -122,11 +123,12 @@ class OccupancyMap:
         # point: ~35% faster on downsampled depth frames, and the map cannot resolve the
         # difference. lazy_eval stays off: it skips pruning, which doubles the leaf count.
         self._tree.insertPointCloud(pts, origin, maxrange=self._config.max_range_m, discretize=True)
-        self._fill_below(pts)
+        self._fill_below(pts, origin)
         self._occupied_cache = None
 
-    def _fill_below(self, points_world: FloatArray) -> None:
-        """One hit for each voxel under an endpoint's voxel, down to the workspace floor."""
+    def _fill_below(self, points_world: FloatArray, origin: FloatArray) -> None:
+        """One hit for each voxel under an endpoint's voxel, down to the workspace floor, except
+        where this scan's rays pass through (the opening under a shelf board)."""
         if not self._config.fill_below_surfaces:
             return
         res = self.resolution_m
@@ -142,8 +144,11 @@ class OccupancyMap:
         # Position within each column: 0 .. height-1 counted down from the top.
         starts = np.repeat(np.cumsum(heights) - heights, heights)
         depth = np.arange(heights.sum()) - starts
-        filled = np.column_stack([columns[column_of], top_z[column_of] - 1 - depth])
-        self._tree.updateNodes(_keys_to_centers(_pack_keys(filled), res), True)
+        filled = _keys_to_centers(_pack_keys(np.column_stack([columns[column_of], top_z[column_of] - 1 - depth])), res)
+        through = self._crossed_keys(filled, points_world, origin)
+        filled = filled[~np.isin(_pack_keys(_centers_to_keys(filled, res)), through)]
+        if filled.shape[0]:
+            self._tree.updateNodes(filled, True)
 
     def free_where(self, inside: Callable[[FloatArray], BoolArray]) -> int:
         """Mark free every occupied voxel whose center `inside` flags; returns how many.
@@ -169,14 +174,14 @@ class OccupancyMap:
             self._occupied_cache = None
         return int(hidden.shape[0])
 
-    def _crossed_occupied_keys(self, points_world: FloatArray, origin: FloatArray) -> npt.NDArray[np.int64]:
-        """Packed keys of occupied voxels that sensor-to-point segments pass through and leave.
+    def _crossed_keys(self, centers: FloatArray, points_world: FloatArray, origin: FloatArray) -> npt.NDArray[np.int64]:
+        """Packed keys of the voxels at `centers` (occupied ones, or ones to fill) that
+        sensor-to-point segments pass through and leave.
 
         octomap-python exposes no free-only ray update (nor its ray keys), so this casts the
         segments against the occupied voxels' cubes with open3d's Embree ray caster instead;
         only occupied voxels can change the planning map, which keeps the work small.
         """
-        centers = self.occupied_centers_m()
         if centers.shape[0] == 0 or points_world.shape[0] == 0:
             return np.empty(0, dtype=np.int64)
         segments = points_world - origin

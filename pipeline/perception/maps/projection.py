@@ -255,6 +255,14 @@ class ProjectionOccupancyMap:
             order = np.argsort(-(hits % self._dims[2]), kind="stable")
             room = np.empty(int(hits.size) * int(self._dims[2]), dtype=np.int64)
             filled = room[:kernels.fill_below(hits[order], self._mark, self._frame_id, self._dims, room)].copy()
+            if filled.size:
+                # Below a shelf board is the opening under it: space this frame sees through
+                # is not filled (it would stay filled, every frame refilling what it clears).
+                through = kernels.seen_through(filled, self._origin_key, cfg.resolution_m, self._dims,
+                                               np.linalg.inv(pose), depth, k.fx, k.fy, k.cx, k.cy, cfg.near_m,
+                                               cfg.max_range_m, cfg.clearing_margin_m, cfg.clearing_max_footprint_px)
+                self._mark[filled[through]] = 0  # not this frame's: clearing may take them
+                filled = filled[~through]
             if self_filter is not None and world_from_link is not None and filled.size:
                 # A column under a surface above the arm runs down through it: the part on the
                 # robot is not an obstacle (left in, it stood beside the base until a later frame).

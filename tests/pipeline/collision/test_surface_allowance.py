@@ -71,6 +71,32 @@ def test_a_goal_that_touches_the_seen_surface_stays_in_collision(panda: RobotMod
         assert any(other == OCCUPANCY for _, other in world.collisions(home))
 
 
+@pytest.mark.parametrize("broad_phase", [True, False])
+def test_a_seen_voxel_without_points_is_surface_as_a_whole(panda: RobotModel, broad_phase: bool) -> None:
+    """Voxels the map holds without a seen point in them (filled below a surface, completed
+    support) are kept off at their faces: the points refine the voxels that have them, no more."""
+    home = panda.home_position_rad
+    target = panda.frame_pose(home, "panda_grasptarget")[:3, 3]
+    front = _hand_front_x(panda, home)
+    wall = _wall_points(front + 0.012, target)
+    # A voxel holding the front of the hand, in the map but with no point of the surface in it.
+    poses = panda.link_poses(home)
+    hull = panda.link_hull_vertices["panda_hand"] @ poses["panda_hand"][:3, :3].T + poses["panda_hand"][:3, 3]
+    filled = hull[np.argmax(hull[:, 0])] - np.array([0.002, 0.0, 0.0])
+    occupancy = OccupancyMap(PerceptionConfig(inflation_m=INFLATION_M))
+    occupancy.insert(np.vstack([wall, filled]), wall.mean(axis=0) + np.array([1.0, 0.0, 0.0]))
+    world = CollisionWorld(panda, padding_m=0.0, broad_phase=broad_phase)
+    world.set_octree(occupancy.planning_binary(), occupancy.resolution_m, occupancy.occupied_centers_m(),
+                     clearance_m=INFLATION_M, surface_m=wall, surface_resolution_m=SURFACE_CELL_M)
+    with world.anchored(home[None], math.inf):
+        assert world.clearance_tier(home) == 0
+        assert any(other == OCCUPANCY for _, other in world.collisions(home))
+    # The wall alone leaves the hand free there (test_goal_near_a_surface_...): the voxel did it.
+    alone = _map_world(panda, wall, broad_phase=broad_phase)
+    with alone.anchored(home[None], math.inf):
+        assert not alone.in_collision(home)
+
+
 def test_near_surface_spheres_are_conservative(panda: RobotModel) -> None:
     """At tier 0 the spheres on the surface cells clear only states FCL clears on the surface octree."""
     home = panda.home_position_rad

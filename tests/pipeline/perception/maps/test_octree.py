@@ -323,3 +323,22 @@ def test_fill_below_surfaces_covers_the_unseen_back_of_an_object(fill: bool) -> 
     # Nothing is filled outside the cube's footprint (no sideways growth), nor below the floor.
     assert np.all(np.abs(centers[:, 0] - 0.5) <= 0.07) and np.all(np.abs(centers[:, 1]) <= 0.07)
     assert centers[:, 2].min() >= 0.0
+
+
+def test_fill_below_a_board_leaves_the_space_the_scan_sees_through() -> None:
+    """Rays under a shelf board to the wall behind it: the fill from the board stops at them."""
+    res = 0.02
+    grid = np.arange(0.0, 0.3, 0.005)
+    x, y = np.meshgrid(0.45 + grid, -0.15 + grid, indexing="ij")
+    board = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, 0.451)])
+    # Points on a wall beyond the board, hit by rays that pass under it at z = 0.31.
+    xs = 0.45 + grid
+    wall = np.column_stack([xs, np.full(xs.size, -0.6), np.full(xs.size, 0.31)])
+    occupancy = OccupancyMap(PerceptionConfig(resolution_m=res, workspace_min_m=(-1.0, -1.0, 0.0),
+                                              fill_below_surfaces=True))
+    occupancy.insert(np.vstack([board, wall]), np.array([0.6, 0.8, 0.31]))
+    centers = occupancy.occupied_centers_m()
+    under = centers[(np.abs(centers[:, 0] - 0.6) < 0.05) & (np.abs(centers[:, 1]) < 0.1)]  # inside the rays' fan
+    at_ray = np.abs(under[:, 2] - 0.31) < 0.011
+    assert not np.any(at_ray)  # seen through
+    assert np.sum(np.abs(under[:, 2] - 0.39) < 0.011) >= 40  # unseen: filled

@@ -344,3 +344,16 @@ def test_filling_below_a_surface_stops_at_the_robot(robot: RobotModel, self_filt
                     & (centers[:, 2] < hand[2] + 0.2)]
     assert len(below) > 10  # the plate's shadow is filled, around the arm
     assert np.all(self_filter.outside_mask(centers, robot.link_poses(HOME)))  # but never on it
+
+
+def test_the_fill_below_a_board_stops_where_the_camera_sees_under_it(robot: RobotModel, self_filter: SelfFilter) -> None:
+    """A shelf board on a post: the camera sees the table under its near edge, not under its far side."""
+    board = SceneObject("board", "box", (0.6, 0.1, 0.45), size_m=(0.3, 0.3, 0.02))
+    post = SceneObject("post", "box", (0.6, -0.02, 0.325), size_m=(0.04, 0.04, 0.23))
+    gap = SceneObject("gap", "box", (0.6, 0.1, 0.325), size_m=(0.3, 0.3, 0.19))  # between table and board
+    m = ProjectionOccupancyMap(dataclasses.replace(CONFIG, fill_below_surfaces=True))
+    for _ in range(3):
+        integrate(m, render(TABLE, board, post), robot, self_filter)
+    under_board = voxels_inside(m, gap, shrink_m=0.03)
+    full = np.prod(np.floor((np.asarray(gap.size_m) - 0.06) / RES))
+    assert 0.2 * full < under_board < 0.8 * full, (under_board, full)  # the hidden part filled, the seen part not
