@@ -64,23 +64,8 @@ def test_sampled_goals_are_free_clear_in_the_region_and_detour_when_asked(seed: 
     assert again is not None and first is not None and np.array_equal(again.q, first.q)
 
 
-# An arm turning without end (continuous) on a foot, a slide along it (prismatic).
-SPINNER_URDF = """<?xml version="1.0"?>
-<robot name="spinner">
-  <link name="foot"><collision><geometry><box size="0.2 0.2 0.1"/></geometry></collision></link>
-  <link name="arm"><collision><origin xyz="0.15 0 0"/><geometry><box size="0.3 0.04 0.04"/></geometry></collision></link>
-  <link name="slider"><collision><geometry><sphere radius="0.03"/></geometry></collision></link>
-  <joint name="spin" type="continuous"><parent link="foot"/><child link="arm"/><origin xyz="0 0 0.1"/>
-    <axis xyz="0 0 1"/><limit effort="20" velocity="2"/></joint>
-  <joint name="slide" type="prismatic"><parent link="arm"/><child link="slider"/><origin xyz="0.1 0 0"/>
-    <axis xyz="1 0 0"/><limit lower="0.0" upper="0.2" effort="20" velocity="0.5"/></joint>
-</robot>
-"""
-
-
-def test_a_continuous_joints_goal_is_drawn_on_the_turn_nearest_the_start(tmp_path: Path) -> None:
-    urdf = tmp_path / "spinner.urdf"
-    urdf.write_text(SPINNER_URDF, encoding="utf-8")
+def test_a_continuous_joints_goal_is_drawn_on_the_turn_nearest_the_start(spinner_urdf: Path) -> None:
+    urdf = spinner_urdf
     robot = RobotModel.from_config(RobotConfig(
         name="spinner", urdf=str(urdf), base_link="foot", end_effector_link="slider", joint_names=("spin", "slide"),
         max_velocity_rad_s=(2.0, 0.5), max_acceleration_rad_s2=(8.0, 2.0), max_jerk_rad_s3=(4000.0, 1000.0),

@@ -402,24 +402,8 @@ def test_set_joint_positions_teleports_without_stepping() -> None:
             world.set_joint_positions(HOME[:3])
 
 
-SPINNER_URDF = """<?xml version="1.0"?>
-<robot name="spinner">
-  <link name="foot"><collision><geometry><box size="0.2 0.2 0.1"/></geometry></collision></link>
-  <link name="arm"><collision><origin xyz="0.15 0 0"/><geometry><box size="0.3 0.04 0.04"/></geometry></collision>
-    <inertial><mass value="0.5"/><inertia ixx="0.0001" iyy="0.004" izz="0.004" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <link name="slider"><collision><geometry><sphere radius="0.03"/></geometry></collision>
-    <inertial><mass value="0.1"/><inertia ixx="0.0001" iyy="0.0001" izz="0.0001" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <joint name="spin" type="continuous"><parent link="foot"/><child link="arm"/><origin xyz="0 0 0.1"/>
-    <axis xyz="0 0 1"/><limit effort="20" velocity="2"/></joint>
-  <joint name="slide" type="prismatic"><parent link="arm"/><child link="slider"/><origin xyz="0.1 0 0"/>
-    <axis xyz="1 0 0"/><limit lower="0.0" upper="0.2" effort="20" velocity="0.5"/></joint>
-</robot>
-"""
-
-
-def test_a_continuous_joint_is_unbounded_and_a_prismatic_one_moves_in_metres(tmp_path: Path) -> None:
-    urdf = tmp_path / "spinner.urdf"
-    urdf.write_text(SPINNER_URDF, encoding="utf-8")
+def test_a_continuous_joint_is_unbounded_and_a_prismatic_one_moves_in_metres(spinner_urdf: Path) -> None:
+    urdf = spinner_urdf
     robot = RobotConfig(name="spinner", urdf=str(urdf), base_link="foot", end_effector_link="slider",
                         joint_names=("spin", "slide"), max_velocity_rad_s=(2.0, 0.5), max_acceleration_rad_s2=(8.0, 2.0),
                         max_jerk_rad_s3=(4000.0, 1000.0), home_position_rad=(0.0, 0.0))

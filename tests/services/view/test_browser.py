@@ -51,6 +51,10 @@ WIDTH, HEIGHT = 800, 480
 """The control panel takes 320 px on the right; the 3D view gets the rest."""
 SNAPSHOT_TIMEOUT_S = 120.0
 """A guard against a hung process, not a speed target (a loaded 2-core machine is slow)."""
+CAMERA_QUERY = (f"initialCameraPosition={','.join(map(str, CAMERA_POSITION_M))}"
+                f"&initialCameraLookAt={','.join(map(str, CAMERA_LOOK_AT_M))}&initialCameraUp=0,0,1"
+                f"&initialCameraFov={CAMERA_FOV_RAD}")
+"""The view's own initial camera, stated in the address: the tests project points with it."""
 
 
 class Scene:
@@ -152,10 +156,7 @@ def near(mask: np.ndarray, pixels: np.ndarray, radius: int) -> np.ndarray:
 
 def test_browser_draws_the_robot_and_the_path(scene: Scene) -> None:
     url = scene.wait_for_view()
-    camera = (f"initialCameraPosition={','.join(map(str, CAMERA_POSITION_M))}"
-              f"&initialCameraLookAt={','.join(map(str, CAMERA_LOOK_AT_M))}&initialCameraUp=0,0,1"
-              f"&initialCameraFov={CAMERA_FOV_RAD}")
-    with open_page(page_url(f"{url}?{camera}"), width=WIDTH, height=HEIGHT) as page:
+    with open_page(page_url(f"{url}?{CAMERA_QUERY}"), width=WIDTH, height=HEIGHT) as page:
         canvas = page.locator("canvas").first
         everything = rgb(stable_screenshot(page, canvas))
         height, width, _ = everything.shape
@@ -187,10 +188,7 @@ def test_browser_draws_the_planner_objects(scene: Scene) -> None:
     """Hiding the 'Planner objects' layer changes the pixels where the planner's box projects, and
     little elsewhere."""
     url = scene.wait_for_view()
-    camera = (f"initialCameraPosition={','.join(map(str, CAMERA_POSITION_M))}"
-              f"&initialCameraLookAt={','.join(map(str, CAMERA_LOOK_AT_M))}&initialCameraUp=0,0,1"
-              f"&initialCameraFov={CAMERA_FOV_RAD}")
-    with open_page(page_url(f"{url}?{camera}"), width=WIDTH, height=HEIGHT) as page:
+    with open_page(page_url(f"{url}?{CAMERA_QUERY}"), width=WIDTH, height=HEIGHT) as page:
         canvas = page.locator("canvas").first
         with_objects = rgb(stable_screenshot(page, canvas))
         page.get_by_role("checkbox", name="Planner objects", exact=True).click()
@@ -212,10 +210,7 @@ def test_browser_draws_the_collision_spheres(scene: Scene) -> None:
     """Ticking 'Collision spheres' changes the pixels where the planner's spheres project at the
     arm's joint state, and little beyond them."""
     url = scene.wait_for_view()
-    camera = (f"initialCameraPosition={','.join(map(str, CAMERA_POSITION_M))}"
-              f"&initialCameraLookAt={','.join(map(str, CAMERA_LOOK_AT_M))}&initialCameraUp=0,0,1"
-              f"&initialCameraFov={CAMERA_FOV_RAD}")
-    with open_page(page_url(f"{url}?{camera}"), width=WIDTH, height=HEIGHT) as page:
+    with open_page(page_url(f"{url}?{CAMERA_QUERY}"), width=WIDTH, height=HEIGHT) as page:
         canvas = page.locator("canvas").first
         without = rgb(stable_screenshot(page, canvas))
         toggle = page.get_by_role("checkbox", name="Collision spheres", exact=True)
