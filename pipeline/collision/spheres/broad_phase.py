@@ -220,6 +220,7 @@ class SphereBroadPhase:
         self._coarse = _voxel_layer(np.round((centers - low) / voxel_size_m).astype(np.int64), float(voxel_size_m),
                                     int(math.ceil(0.25 / voxel_size_m)) + 2, low)
         self._fine = None
+        self._fine_slot, self._fine_box = _NO_SLOTS, _NO_BOXES
         if surface_m is not None:
             surface = np.asarray(surface_m, dtype=np.float64).reshape(-1, 3)
             ratio = voxel_size_m / surface_cell_m if surface_cell_m is not None and surface_cell_m > 0 else math.nan
@@ -229,6 +230,7 @@ class SphereBroadPhase:
                 # Cells on the grid anchored at 0, like octomap's voxels: they nest in the voxels.
                 cell = float(surface_cell_m)  # type: ignore[arg-type]
                 self._fine = _cell_layer(np.floor(surface / cell).astype(np.int64), cell)
+                self._fine_slot, self._fine_box = _cell_boxes(self._fine, self._coarse)
         self._has_grid = True
         self._clearances = [float(clearance_m) * t / tiers for t in range(tiers + 1)]
         self._refresh_args()
@@ -236,6 +238,7 @@ class SphereBroadPhase:
     def clear_occupancy(self) -> None:
         self._coarse = _VoxelLayer(np.zeros((1, 1, 1)), np.zeros(3), 1.0, np.zeros((2, 3)), np.zeros((1, 1, 1), dtype=np.bool_))
         self._fine = None
+        self._fine_slot, self._fine_box = _NO_SLOTS, _NO_BOXES
         self._has_grid = False
         self._clearances = [0.0]
         self._refresh_args()
@@ -327,7 +330,7 @@ class SphereBroadPhase:
             obj_translation=self._obj_translation, obj_param=self._obj_param, obj_bound=self._obj_bound,
             has_grid=self._has_grid, grid=layer.field, grid_origin=layer.origin, grid_voxel=layer.voxel,
             grid_box=layer.box, occupied=layer.occupied, fine=fine.occupied, fine_origin=fine.origin,
-            fine_voxel=fine.voxel, grid_clearance=float(grid_clearance),
+            fine_voxel=fine.voxel, fine_slot=self._fine_slot, fine_box=self._fine_box, grid_clearance=float(grid_clearance),
             att_center_joint=self._att_center_joint, att_radius=self._att_radius,
             att_radius_world=self._att_radius_world, att_joint=self._att_joint,
             att_skip=self._att_skip, att_lanes=self._att_lanes, **self._lane_scratch)
@@ -446,6 +449,30 @@ def _cell_layer(keys: np.ndarray, cell_m: float) -> _VoxelLayer:
     return _VoxelLayer(np.zeros((1, 1, 1)), (low + 0.5) * cell_m, cell_m, np.zeros((2, 3)), occupied)
 
 
+def _cell_boxes(fine: _VoxelLayer, coarse: _VoxelLayer) -> tuple[np.ndarray, np.ndarray]:
+    """Per voxel of `coarse`, the box of the occupied `fine` cells inside it (`kernels.touches_cells`):
+    a grid of rows of the (V, 6) boxes (-1: no cell), and the boxes as first and last `fine`
+    indices per axis."""
+    cells = np.argwhere(fine.occupied)
+    centers = fine.origin + cells * fine.voxel
+    voxel = np.round((centers - coarse.origin) / coarse.voxel).astype(np.int64)
+    dims = np.array(coarse.occupied.shape)
+    if np.any(voxel < 0) or np.any(voxel >= dims):
+        raise ValueError("surface cells lie outside the voxels' grid")
+    flat = np.ravel_multi_index(tuple(voxel.T), tuple(dims))
+    voxels, row = np.unique(flat, return_inverse=True)
+    boxes = np.empty((voxels.shape[0], 6), dtype=np.int64)
+    boxes[:, :3] = np.iinfo(np.int64).max
+    boxes[:, 3:] = -1
+    np.minimum.at(boxes[:, :3], row, cells)
+    np.maximum.at(boxes[:, 3:], row, cells)
+    slot = np.full(coarse.occupied.size, -1, dtype=np.int32)
+    slot[voxels] = np.arange(voxels.shape[0])
+    return slot.reshape(coarse.occupied.shape), boxes
+
+
+_NO_SLOTS = np.full((1, 1, 1), -1, dtype=np.int32)
+_NO_BOXES = np.zeros((0, 6), dtype=np.int64)
 _NO_STEPS = np.zeros(0, dtype=np.int64)
 _NO_STEPS.flags.writeable = False
 

@@ -63,11 +63,18 @@ def voxel_distance(x: float, y: float, z: float, grid: FloatArray, origin: Float
 
 @nb.njit(cache=True)
 def touches_cells(x: float, y: float, z: float, radius: float, occupied: BoolArray, origin: FloatArray, voxel: float,
-                  fine: BoolArray, fine_origin: FloatArray, fine_voxel: float) -> bool:
+                  fine: BoolArray, fine_origin: FloatArray, fine_voxel: float, fine_slot: IntArray,
+                  fine_box: IntArray) -> bool:
     """Whether the sphere touches an occupied cell of `fine`, a grid nested in the voxels'
     (`occupied`, cell side `voxel`) whose occupied cells lie in occupied voxels: the voxels
-    the sphere touches first (`touches_voxels`' loop), then only their cells. With
-    `fine_voxel == voxel` the cells are the voxels."""
+    the sphere touches first (`touches_voxels`' loop), then the box of their cells, then only
+    the cells in that box. With `fine_voxel == voxel` the cells are the voxels.
+
+    `fine_slot` (the voxels' grid): -1 for a voxel without cells, else a row of `fine_box`
+    (V, 6): the smallest box of `fine` indices (first i, j, k, then last i, j, k) holding the
+    voxel's cells. A seen surface crosses a voxel as a slab a cell or two thick: a sphere near
+    the voxel but off the slab is settled by one box distance instead of a loop over its cells
+    (a map's surface test ran at 2.5 times the cost of the voxels' before)."""
     if fine_voxel == voxel:
         return touches_voxels(x, y, z, radius, occupied, origin, voxel)
     half = 0.5 * voxel
@@ -87,17 +94,31 @@ def touches_cells(x: float, y: float, z: float, radius: float, occupied: BoolArr
             dxy = dx * dx + dy * dy
             if dxy > r2:
                 continue
-            for k in range(lo_k, hi_k + 1):
-                if not occupied[i, j, k]:
+            # Only the voxels of this column that the sphere reaches (a ball, not its box).
+            reach_z = math.sqrt(r2 - dxy)
+            first_k = max(int(math.ceil((z - reach_z - origin[2]) / voxel - 0.5)), lo_k)
+            last_k = min(int(math.floor((z + reach_z - origin[2]) / voxel + 0.5)), hi_k)
+            for k in range(first_k, last_k + 1):
+                slot = fine_slot[i, j, k]
+                if slot < 0:
                     continue
                 cz = origin[2] + k * voxel
                 dz = max(abs(z - cz) - half, 0.0)
                 if dxy + dz * dz > r2:
                     continue
-                # The voxel's cells that the sphere's box overlaps.
-                if _touches_cells_in(x, y, z, r2, max(cx - half, x - radius), min(cx + half, x + radius),
-                                     max(cy - half, y - radius), min(cy + half, y + radius), max(cz - half, z - radius),
-                                     min(cz + half, z + radius), fine, fine_origin, fine_voxel):
+                # The box of the voxel's cells, then its cells that the sphere's box overlaps.
+                x0 = fine_origin[0] + (fine_box[slot, 0] - 0.5) * fine_voxel
+                x1 = fine_origin[0] + (fine_box[slot, 3] + 0.5) * fine_voxel
+                y0 = fine_origin[1] + (fine_box[slot, 1] - 0.5) * fine_voxel
+                y1 = fine_origin[1] + (fine_box[slot, 4] + 0.5) * fine_voxel
+                z0 = fine_origin[2] + (fine_box[slot, 2] - 0.5) * fine_voxel
+                z1 = fine_origin[2] + (fine_box[slot, 5] + 0.5) * fine_voxel
+                ex, ey, ez = max(x0 - x, 0.0, x - x1), max(y0 - y, 0.0, y - y1), max(z0 - z, 0.0, z - z1)
+                if ex * ex + ey * ey + ez * ez > r2:
+                    continue
+                if _touches_cells_in(x, y, z, r2, max(x0, x - radius), min(x1, x + radius), max(y0, y - radius),
+                                     min(y1, y + radius), max(z0, z - radius), min(z1, z + radius), fine, fine_origin,
+                                     fine_voxel):
                     return True
     return False
 

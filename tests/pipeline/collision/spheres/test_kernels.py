@@ -22,6 +22,25 @@ def _grids(fine_index: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray, np
     return occupied, np.full(3, 0.5 * VOXEL_M), fine, np.full(3, 0.5 * CELL_M)
 
 
+def _boxes(occupied: np.ndarray, fine: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The voxels' rows of cell boxes and the boxes (`touches_cells`), by a loop over the voxels."""
+    ratio = round(VOXEL_M / CELL_M)
+    slot = np.full(occupied.shape, -1, dtype=np.int32)
+    boxes = []
+    for voxel in np.argwhere(occupied):
+        block = fine[tuple(slice(v * ratio, (v + 1) * ratio) for v in voxel)]
+        cells = np.argwhere(block) + voxel * ratio
+        if len(cells):
+            slot[tuple(voxel)] = len(boxes)
+            boxes.append(np.concatenate([cells.min(axis=0), cells.max(axis=0)]))
+    return slot, np.array(boxes, dtype=np.int64).reshape(-1, 6)
+
+
+def _touches_cells(x: float, y: float, z: float, radius_m: float, occupied: np.ndarray, origin: np.ndarray,
+                   fine: np.ndarray, fine_origin: np.ndarray) -> bool:
+    return touches_cells(x, y, z, radius_m, occupied, origin, VOXEL_M, fine, fine_origin, CELL_M, *_boxes(occupied, fine))
+
+
 @pytest.mark.parametrize(("radius_m", "by_voxel", "by_cell"), [
     (0.009, False, False),  # short of the voxel's top face (1 cm away)
     (0.011, True, False),  # into the voxel, not near its bottom corner cell
@@ -33,18 +52,50 @@ def test_fine_cells_are_touched_only_where_the_sphere_reaches_them(radius_m: flo
     occupied, origin, fine, fine_origin = _grids((4, 4, 4))  # the cell [0.02, 0.025] in every axis
     x, y, z = 0.03, 0.03, 0.05  # 1 cm above the voxel's center column
     assert touches_voxels(x, y, z, radius_m, occupied, origin, VOXEL_M) is by_voxel
-    assert touches_cells(x, y, z, radius_m, occupied, origin, VOXEL_M, fine, fine_origin, CELL_M) is by_cell
+    assert _touches_cells(x, y, z, radius_m, occupied, origin, fine, fine_origin) is by_cell
 
 
 def test_fine_cells_outside_every_occupied_voxel_are_not_looked_at() -> None:
     """The cells are checked inside the voxels the sphere touches only (they must lie in occupied voxels)."""
     occupied, origin, fine, fine_origin = _grids((4, 4, 4))
     occupied[1, 1, 1] = False
-    assert not touches_cells(0.03, 0.03, 0.05, 0.05, occupied, origin, VOXEL_M, fine, fine_origin, CELL_M)
+    assert not _touches_cells(0.03, 0.03, 0.05, 0.05, occupied, origin, fine, fine_origin)
 
 
 def test_cells_as_large_as_the_voxels_are_the_voxels() -> None:
     occupied, origin, _, _ = _grids((0, 0, 0))
     for radius_m in (0.009, 0.011):
-        assert touches_cells(0.03, 0.03, 0.05, radius_m, occupied, origin, VOXEL_M, occupied, origin, VOXEL_M) \
+        assert touches_cells(0.03, 0.03, 0.05, radius_m, occupied, origin, VOXEL_M, occupied, origin, VOXEL_M,
+                             np.full((1, 1, 1), -1, dtype=np.int32), np.zeros((0, 6), dtype=np.int64)) \
             is touches_voxels(0.03, 0.03, 0.05, radius_m, occupied, origin, VOXEL_M)
+
+
+def test_cell_boxes_give_the_answers_of_every_cell() -> None:
+    """Random surface slabs in random voxels, random spheres: a sphere touches the cells (box
+    first, then the cells in it) exactly when one cell is within its radius, cube by cube."""
+    rng = np.random.default_rng(7)
+    ratio = round(VOXEL_M / CELL_M)
+    occupied = rng.random((6, 6, 6)) < 0.3
+    fine = np.zeros((6 * ratio,) * 3, dtype=np.bool_)
+    for voxel in np.argwhere(occupied):
+        # A slab one cell thick across the voxel, along a random axis (a seen surface), sometimes a lone cell.
+        block = np.zeros((ratio,) * 3, dtype=np.bool_)
+        if rng.random() < 0.8:
+            axis, layer = int(rng.integers(3)), int(rng.integers(ratio))
+            np.moveaxis(block, axis, 0)[layer] = True
+        else:
+            block[tuple(rng.integers(ratio, size=3))] = True
+        fine[tuple(slice(v * ratio, (v + 1) * ratio) for v in voxel)] = block
+    origin, fine_origin = np.full(3, 0.5 * VOXEL_M), np.full(3, 0.5 * CELL_M)
+    lows = np.argwhere(fine) * CELL_M
+    slot, boxes = _boxes(occupied, fine)
+    touching = 0
+    for x, y, z, radius_m in np.column_stack([rng.uniform(-0.02, 0.14, size=(2000, 3)), rng.uniform(0.0, 0.05, 2000)]):
+        gap = np.maximum(np.maximum(lows - (x, y, z), (x, y, z) - (lows + CELL_M)), 0.0)
+        distance = float(np.sqrt((gap ** 2).sum(axis=1)).min())
+        if abs(distance - radius_m) < 1e-9:
+            continue  # touching within rounding: either answer is right
+        exact = bool(distance <= radius_m)
+        touching += exact
+        assert touches_cells(x, y, z, radius_m, occupied, origin, VOXEL_M, fine, fine_origin, CELL_M, slot, boxes) is exact
+    assert 200 < touching < 1800
