@@ -14,9 +14,11 @@ one call of ~50 us against ~14 ms of FCL for a free edge. FCL stays the exact ch
 suspects, asked only about the pairs whose spheres touch (`suspect_pairs`).
 
 Robot-vs-world spheres are grown so they contain the PADDED hulls FCL uses: `grow_hull` pushes
-vertices out by up to ~1.8x the padding, so each shape's world radii grow by the Hausdorff
-distance from its grown hull to its hull (measured with FCL at construction). Self-collision
-uses the unpadded spheres, as `CollisionWorld` does.
+vertices out by up to ~1.8x the padding, so each shape's world radii are refitted to its grown
+hull by power cells (`radii_covering`: each sphere grows by what its part of the grown hull
+needs, at least the padding), or, where that is not smaller, all grow by the Hausdorff distance
+from the grown hull to the hull (measured with FCL at construction). Self-collision uses the
+unpadded spheres, as `CollisionWorld` does.
 """
 
 from __future__ import annotations
@@ -35,9 +37,9 @@ from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld, edge_susp
 from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, suspect_pairs_of_state
 from robonav.pipeline.collision.spheres.self_pair_tables import SelfPairTables, build_self_pair_tables
 from robonav.pipeline.collision.spheres.separating_planes import SeparatingPlanes, cached_separating_planes
-from robonav.pipeline.collision.spheres.sphere_model import RobotSphereModel, robot_sphere_model
+from robonav.pipeline.collision.spheres.sphere_model import RobotSphereModel, radii_covering, robot_sphere_model
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
-from robonav.pipeline.robot.link_geometry import grow_hull
+from robonav.pipeline.robot.link_geometry import LinkShape, grow_hull
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
@@ -86,7 +88,7 @@ class SphereBroadPhase:
         # and a lazy compile triggered from an OMPL worker thread can deadlock on the GIL.
         self._centers_link = np.array(model.centers_link_m, dtype=np.float64, order="C")
         self._radii_self = np.array(model.radii_m, dtype=np.float64)
-        self._radii_world = self._radii_self + growth[model.shape_index]
+        self._radii_world = _world_radii(shapes, model, growth, padding_m)
         # How far the padded hulls FCL uses reach beyond a link's own (separating_planes' box test).
         self._link_growth = np.array([max((growth[s] for s in np.flatnonzero(np.array([sh.link for sh in shapes]) == link)),
                                           default=0.0) for link in links], dtype=np.float64)
@@ -504,6 +506,24 @@ def _to_joint_frame(kin: LinkKinematics, link_index: np.ndarray, points_link: Fl
     points = np.asarray(points_link, dtype=np.float64).reshape(-1, 3)
     rotated = np.einsum("nij,nj->ni", kin.joint_from_link_rotation[index], points)
     return np.ascontiguousarray(rotated + kin.joint_from_link_translation_m[index])
+
+
+def _world_radii(shapes: Sequence[LinkShape], model: RobotSphereModel, growth_m: FloatArray,
+                 padding_m: float) -> FloatArray:
+    """Radii with which each shape's spheres cover its PADDED hull (`grow_hull`, what FCL checks
+    against the world): each sphere grows by what its own part of the grown hull needs (between
+    the padding and the hull's worst growth `growth_m`), not all by the worst."""
+    radii = np.array(model.radii_m, dtype=np.float64)
+    if padding_m <= 0:
+        return radii
+    for s, shape in enumerate(shapes):
+        mine = np.flatnonzero(model.shape_index == s)
+        grown, _ = grow_hull(shape.hull_vertices, shape.hull_triangles, padding_m)
+        fitted = radii_covering(grown, model.centers_link_m[mine], model.radii_m[mine] + padding_m)
+        uniform = model.radii_m[mine] + growth_m[s]
+        # Each is a cover of the grown hull on its own (mixing them per sphere is not): keep the smaller.
+        radii[mine] = fitted if np.sum(fitted**3) <= np.sum(uniform**3) else uniform
+    return radii
 
 
 def _padded_growth_m(vertices: FloatArray, triangles: np.ndarray, padding_m: float) -> float:

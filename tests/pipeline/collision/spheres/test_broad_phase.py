@@ -9,9 +9,10 @@ import octomap
 import pytest
 
 from robonav.pipeline.collision.edges import bisection_order
-from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
+from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase, _padded_growth_m
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.link_geometry import grow_hull
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 
@@ -273,3 +274,27 @@ def test_fine_surface_cells_flag_fewer_states_than_their_voxels(panda: RobotMode
     assert by_cell <= by_voxel
     assert len(by_cell) < len(by_voxel)
     assert by_cell  # the cell is flagged too, where the spheres reach it
+
+
+def test_world_spheres_cover_the_padded_hulls_no_looser_than_the_worst_growth(panda: RobotModel) -> None:
+    """The world radii are fitted per sphere to the grown hull FCL checks (`grow_hull`); they
+    must contain it, and never be looser than adding the hull's worst growth to every sphere."""
+    padding = 0.02
+    bp = SphereBroadPhase(panda, padding_m=padding, self_pair_tables=False, separating_planes=False)
+    model = bp.sphere_model
+    shapes = [s for link in panda.collision_link_names for s in panda.link_collision_shapes[link]]
+    rng = np.random.default_rng(3)
+    tighter = 0
+    for s, shape in enumerate(shapes):
+        mine = model.shape_index == s
+        grown, triangles = grow_hull(shape.hull_vertices, shape.hull_triangles, padding)
+        tri = grown[triangles[rng.integers(0, len(triangles), 3000)]]
+        samples = np.vstack([np.einsum("nk,nkj->nj", rng.dirichlet(np.ones(3), 3000), tri), grown])
+        gap = np.linalg.norm(samples[:, None] - model.centers_link_m[mine][None], axis=2) - bp._radii_world[mine][None]
+        assert np.max(np.min(gap, axis=1)) <= 0.0, shape.link
+        worst = _padded_growth_m(shape.hull_vertices, shape.hull_triangles, padding)
+        uniform = model.radii_m[mine] + worst
+        assert np.sum(bp._radii_world[mine] ** 3) <= np.sum(uniform ** 3) + 1e-15, shape.link
+        assert np.all(bp._radii_world[mine] >= model.radii_m[mine] + padding - 1e-9), shape.link
+        tighter += bool(np.any(bp._radii_world[mine] < uniform - 1e-4))
+    assert tighter >= len(shapes) // 2  # the fit gains on most links, or it is not worth its cost

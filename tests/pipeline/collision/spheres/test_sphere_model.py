@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from robonav.pipeline.collision.spheres.sphere_model import box_points, cover_convex_points, cylinder_points, robot_sphere_model
+from robonav.pipeline.collision.spheres.sphere_model import (
+    box_points,
+    cover_convex_points,
+    cylinder_points,
+    radii_covering,
+    robot_sphere_model,
+)
 from robonav.pipeline.robot.link_geometry import convex_hull
 from robonav.pipeline.robot.model import RobotModel
 
@@ -49,3 +55,14 @@ def test_cover_is_deterministic(panda: RobotModel) -> None:
     b = cover_convex_points(points.copy(), max_protrusion_m=0.012)
     np.testing.assert_array_equal(a.centers_m, b.centers_m)
     np.testing.assert_array_equal(a.radii_m, b.radii_m)
+
+
+def test_radii_covering_a_grown_box_grow_only_where_needed() -> None:
+    """Spheres of a box's cover refitted to the box grown by 2 cm: every sample of the grown box
+    is covered, and the balls grow by at least the padding but not all by the corner's 3.5 cm."""
+    cover = cover_convex_points(box_points((0.3, 0.1, 0.05)))
+    grown = box_points((0.34, 0.14, 0.09))
+    radii = radii_covering(grown, cover.centers_m, cover.radii_m + 0.02)
+    assert _uncovered_m(_hull_samples(grown, np.random.default_rng(2)), cover.centers_m, radii) <= 0.0
+    assert np.all(radii >= cover.radii_m + 0.02)
+    assert np.min(radii - cover.radii_m) < 0.02 * 3**0.5
