@@ -26,12 +26,11 @@ from __future__ import annotations
 import math
 import weakref
 from collections.abc import Sequence
-from typing import NamedTuple
 
 import fcl
 import numpy as np
-from scipy.ndimage import distance_transform_edt
 
+from robonav.pipeline.collision.spheres.grid_layers import NO_BOXES, NO_SLOTS, VoxelLayer, cell_boxes, cell_layer, voxel_layer
 from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CYLINDER, SPHERE
 from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld, edge_suspect_steps, state_suspect_lanes
 from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, suspect_pairs_of_state
@@ -44,7 +43,6 @@ from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
 
-_MAX_GRID_CELLS = 60_000_000
 _PLANE_FIELDS = (("pair_whole", "pair_whole"), ("pair_range", "pair_range"), ("sub_piece", "sub_piece"), ("sub_start", "sub_start"), ("side", "side"),
                  ("plane", "plane_joint"), ("piece_link", "piece_link"), ("piece_center", "piece_center_joint"),
                  ("piece_radius", "piece_radius"), ("vertex_start", "vertex_start"), ("vertices", "vertices_joint"),
@@ -219,10 +217,10 @@ class SphereBroadPhase:
             self.clear_occupancy()
             return
         low = centers.min(axis=0)
-        self._coarse = _voxel_layer(np.round((centers - low) / voxel_size_m).astype(np.int64), float(voxel_size_m),
+        self._coarse = voxel_layer(np.round((centers - low) / voxel_size_m).astype(np.int64), float(voxel_size_m),
                                     int(math.ceil(0.25 / voxel_size_m)) + 2, low)
         self._fine = None
-        self._fine_slot, self._fine_box = _NO_SLOTS, _NO_BOXES
+        self._fine_slot, self._fine_box = NO_SLOTS, NO_BOXES
         if surface_m is not None:
             surface = np.asarray(surface_m, dtype=np.float64).reshape(-1, 3)
             ratio = voxel_size_m / surface_cell_m if surface_cell_m is not None and surface_cell_m > 0 else math.nan
@@ -231,16 +229,16 @@ class SphereBroadPhase:
             if surface.shape[0]:
                 # Cells on the grid anchored at 0, like octomap's voxels: they nest in the voxels.
                 cell = float(surface_cell_m)  # type: ignore[arg-type]
-                self._fine = _cell_layer(np.floor(surface / cell).astype(np.int64), cell)
-                self._fine_slot, self._fine_box = _cell_boxes(self._fine, self._coarse)
+                self._fine = cell_layer(np.floor(surface / cell).astype(np.int64), cell)
+                self._fine_slot, self._fine_box = cell_boxes(self._fine, self._coarse)
         self._has_grid = True
         self._clearances = [float(clearance_m) * t / tiers for t in range(tiers + 1)]
         self._refresh_args()
 
     def clear_occupancy(self) -> None:
-        self._coarse = _VoxelLayer(np.zeros((1, 1, 1)), np.zeros(3), 1.0, np.zeros((2, 3)), np.zeros((1, 1, 1), dtype=np.bool_))
+        self._coarse = VoxelLayer(np.zeros((1, 1, 1)), np.zeros(3), 1.0, np.zeros((2, 3)), np.zeros((1, 1, 1), dtype=np.bool_))
         self._fine = None
-        self._fine_slot, self._fine_box = _NO_SLOTS, _NO_BOXES
+        self._fine_slot, self._fine_box = NO_SLOTS, NO_BOXES
         self._has_grid = False
         self._clearances = [0.0]
         self._refresh_args()
@@ -313,7 +311,7 @@ class SphereBroadPhase:
                               np.zeros(n_links, dtype=np.bool_), np.zeros(self._self_pairs.shape[0], dtype=np.bool_),
                               np.zeros((n_links, 4, 4)))
 
-    def _new_lane_world(self, grid_clearance: float, fine: _VoxelLayer | None) -> LaneWorld:
+    def _new_lane_world(self, grid_clearance: float, fine: VoxelLayer | None) -> LaneWorld:
         parent, joint_type, q_slot, coefficients, base_joint, joint_from_base = self._kin_lane_args
         tables = self._pair_tables
         layer = self._coarse
@@ -412,69 +410,6 @@ class SphereBroadPhase:
         return self._step_buffer[:count].copy(), steps
 
 
-class _VoxelLayer(NamedTuple):
-    field: FloatArray
-    """Lower bound on the distance to the occupied cubes at each cell center [m]."""
-    origin: FloatArray
-    """Center of cell (0, 0, 0) [m]."""
-    voxel: float
-    box: FloatArray
-    """(2, 3) bounding box of the occupied cubes [m]."""
-    occupied: np.ndarray
-
-
-def _voxel_layer(keys: np.ndarray, voxel_m: float, margin_cells: int, key0_center_m: FloatArray) -> _VoxelLayer:
-    """The cubes of grid `keys` (N, 3) (cell k centered at key0_center_m + k * voxel_m) with a Euclidean
-    distance field on a grid covering them plus `margin_cells`. A lookup at point p in cell c
-    returns edt(c) - |p - center(c)| - half a cube's diagonal, a lower bound on the distance from
-    p to any occupied cube; outside the grid the distance to the cubes' bounding box is used."""
-    low = keys.min(axis=0) - margin_cells
-    index = keys - low
-    dims = index.max(axis=0) + margin_cells + 1
-    if int(np.prod(dims)) > _MAX_GRID_CELLS:
-        raise ValueError(f"occupancy spans {dims.tolist()} cells, more than {_MAX_GRID_CELLS}")
-    occupied = np.zeros(tuple(dims), dtype=bool)
-    occupied[index[:, 0], index[:, 1], index[:, 2]] = True
-    field = distance_transform_edt(~occupied) * voxel_m - 0.5 * math.sqrt(3.0) * voxel_m
-    box = np.array([key0_center_m + (keys.min(axis=0) - 0.5) * voxel_m, key0_center_m + (keys.max(axis=0) + 0.5) * voxel_m])
-    return _VoxelLayer(np.ascontiguousarray(field, dtype=np.float64), key0_center_m + low * voxel_m, voxel_m, box, occupied)
-
-
-def _cell_layer(keys: np.ndarray, cell_m: float) -> _VoxelLayer:
-    """Occupied cells of grid `keys` (N, 3) (cell k spans [k, k + 1) * cell_m), without a distance field."""
-    low = keys.min(axis=0)
-    dims = keys.max(axis=0) - low + 1
-    if int(np.prod(dims)) > _MAX_GRID_CELLS:
-        raise ValueError(f"surface spans {dims.tolist()} cells, more than {_MAX_GRID_CELLS}")
-    occupied = np.zeros(tuple(dims), dtype=bool)
-    occupied[tuple((keys - low).T)] = True
-    return _VoxelLayer(np.zeros((1, 1, 1)), (low + 0.5) * cell_m, cell_m, np.zeros((2, 3)), occupied)
-
-
-def _cell_boxes(fine: _VoxelLayer, coarse: _VoxelLayer) -> tuple[np.ndarray, np.ndarray]:
-    """Per voxel of `coarse`, the box of the occupied `fine` cells inside it (`kernels.touches_cells`):
-    a grid of rows of the (V, 6) boxes (-1: no cell), and the boxes as first and last `fine`
-    indices per axis."""
-    cells = np.argwhere(fine.occupied)
-    centers = fine.origin + cells * fine.voxel
-    voxel = np.round((centers - coarse.origin) / coarse.voxel).astype(np.int64)
-    dims = np.array(coarse.occupied.shape)
-    if np.any(voxel < 0) or np.any(voxel >= dims):
-        raise ValueError("surface cells lie outside the voxels' grid")
-    flat = np.ravel_multi_index(tuple(voxel.T), tuple(dims))
-    voxels, row = np.unique(flat, return_inverse=True)
-    boxes = np.empty((voxels.shape[0], 6), dtype=np.int64)
-    boxes[:, :3] = np.iinfo(np.int64).max
-    boxes[:, 3:] = -1
-    np.minimum.at(boxes[:, :3], row, cells)
-    np.maximum.at(boxes[:, 3:], row, cells)
-    slot = np.full(coarse.occupied.size, -1, dtype=np.int32)
-    slot[voxels] = np.arange(voxels.shape[0])
-    return slot.reshape(coarse.occupied.shape), boxes
-
-
-_NO_SLOTS = np.full((1, 1, 1), -1, dtype=np.int32)
-_NO_BOXES = np.zeros((0, 6), dtype=np.int64)
 _NO_STEPS = np.zeros(0, dtype=np.int64)
 _NO_STEPS.flags.writeable = False
 
