@@ -144,11 +144,11 @@ class OccupancyMap:
         # Position within each column: 0 .. height-1 counted down from the top.
         starts = np.repeat(np.cumsum(heights) - heights, heights)
         depth = np.arange(heights.sum()) - starts
-        filled = _keys_to_centers(_pack_keys(np.column_stack([columns[column_of], top_z[column_of] - 1 - depth])), res)
-        through = self._crossed_keys(filled, points_world, origin)
-        filled = filled[~np.isin(_pack_keys(_centers_to_keys(filled, res)), through)]
-        if filled.shape[0]:
-            self._tree.updateNodes(filled, True)
+        filled = _pack_keys(np.column_stack([columns[column_of], top_z[column_of] - 1 - depth]))
+        centers = _keys_to_centers(filled, res)
+        centers = centers[~np.isin(filled, self._crossed_keys(centers, points_world, origin))]
+        if centers.shape[0]:
+            self._tree.updateNodes(centers, True)
 
     def free_where(self, inside: Callable[[FloatArray], BoolArray]) -> int:
         """Mark free every occupied voxel whose center `inside` flags; returns how many.

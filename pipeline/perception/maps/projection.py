@@ -249,6 +249,14 @@ class ProjectionOccupancyMap:
             if occupied.size:
                 robot_voxels = self._on_robot(occupied, clear_filter or self_filter, world_from_link)
                 robot_cleared = int(robot_voxels.size)
+        camera_from_world = np.linalg.inv(pose)
+
+        def seen_through(voxels: IntArray) -> BoolArray:
+            """Which of `voxels` this frame provably sees past (free-space evidence)."""
+            return kernels.seen_through(voxels, self._origin_key, cfg.resolution_m, self._dims, camera_from_world,
+                                        depth, k.fx, k.fy, k.cx, k.cy, cfg.near_m, cfg.max_range_m,
+                                        cfg.clearing_margin_m, cfg.clearing_max_footprint_px)
+
         filled = np.empty(0, dtype=np.int64)
         if cfg.fill_below_surfaces and hits.size:
             # Highest first, so lower hits of a column stop where the fill already reached.
@@ -258,9 +266,7 @@ class ProjectionOccupancyMap:
             if filled.size:
                 # Below a shelf board is the opening under it: space this frame sees through
                 # is not filled (it would stay filled, every frame refilling what it clears).
-                through = kernels.seen_through(filled, self._origin_key, cfg.resolution_m, self._dims,
-                                               np.linalg.inv(pose), depth, k.fx, k.fy, k.cx, k.cy, cfg.near_m,
-                                               cfg.max_range_m, cfg.clearing_margin_m, cfg.clearing_max_footprint_px)
+                through = seen_through(filled)
                 self._mark[filled[through]] = 0  # not this frame's: clearing may take them
                 filled = filled[~through]
             if self_filter is not None and world_from_link is not None and filled.size:
@@ -273,11 +279,7 @@ class ProjectionOccupancyMap:
         misses = np.empty(0, dtype=np.int64)
         if occupied.size:
             candidates = occupied[self._mark[occupied] != self._frame_id]
-            camera_from_world = np.linalg.inv(pose)
-            seen = kernels.seen_through(candidates, self._origin_key, cfg.resolution_m, self._dims, camera_from_world,
-                                        depth, k.fx, k.fy, k.cx, k.cy, cfg.near_m, cfg.max_range_m,
-                                        cfg.clearing_margin_m, cfg.clearing_max_footprint_px)
-            misses = candidates[seen]
+            misses = candidates[seen_through(candidates)]
         lap("clearing")
 
         log_odds = self._log_odds
