@@ -89,6 +89,8 @@ class PoseSpec:
     quat_xyzw: tuple[float, float, float, float]
 
     def __post_init__(self) -> None:
+        require(all(math.isfinite(v) for v in (*self.position_m, *self.quat_xyzw)),
+                f"position_m and quat_xyzw must be finite, got {list(self.position_m)}, {list(self.quat_xyzw)}")
         norm = math.sqrt(sum(v * v for v in self.quat_xyzw))
         require(abs(norm - 1.0) < 1e-3, f"quat_xyzw must be a unit quaternion, got {list(self.quat_xyzw)} (norm {norm})")
 

@@ -44,7 +44,7 @@ from robonav.pipeline.types import FloatArray
 
 
 class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance, AttachedChecks):
-    """A robot model plus the obstacles it must avoid, all in the robot base (world) frame.
+    """A robot model plus the obstacles it must avoid, all in the world frame.
 
     Not thread-safe: FCL objects are re-posed on every query. Mixed in: the distance queries
     (`clearance.py`), the sphere-first checks (`sphere_first.py`), the map's clearance and its

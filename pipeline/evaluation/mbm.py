@@ -22,6 +22,7 @@ import numpy as np
 
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.transforms import PoseSpec
 from robonav.pipeline.types import FloatArray
 
 MBM_FORMAT = "mbm-primitives/1"
@@ -150,8 +151,9 @@ def mbm_robot_config(problems: MbmProblemSet, *, padding_m: float = 0.0,
                      base: RobotConfig | None = None, known_links: frozenset[str] | None = None) -> RobotConfig:
     """The robot config that reproduces MBM's collision model for a problem set.
 
-    Takes the fixed (finger) positions and the allowed-collision pairs from the document,
-    everything else (URDF, limits, ...) from `base`, the default Panda config when None. For
+    Takes the fixed (finger) positions, the allowed-collision pairs and the base pose (the
+    identity, the only one the parser accepts) from the document, everything else (URDF,
+    limits, ...) from `base`, the default Panda config when None. For
     the Panda the MBM joint limits (`MBM_PANDA_POSITION_LIMITS_RAD`) replace the URDF's.
 
     Args:
@@ -182,6 +184,8 @@ def mbm_robot_config(problems: MbmProblemSet, *, padding_m: float = 0.0,
         position_limits_rad=limits,
         allowed_collision_pairs=pairs,
         padding_m=padding_m,
+        # The obstacles are in the robot base frame, wherever the robot file puts the robot.
+        world_from_base=PoseSpec((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)),
     )
 
 

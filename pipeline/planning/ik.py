@@ -143,7 +143,7 @@ def solve_ik(
 
     Args:
         robot: Kinematic model; configurations are in `robot.joint_names` order.
-        target_world_from_link: (4, 4) target pose of the link in the world (robot base) frame
+        target_world_from_link: (4, 4) target pose of the link in the world frame
             [m]; its rotation block must be orthonormal with determinant +1.
         link_name: Any frame of the robot model (e.g. `robot.config.end_effector_link`).
         rng: Source of the restart samples.
@@ -187,12 +187,12 @@ def solve_ik(
     q_index = np.asarray(robot._q_index)
     v_index = np.array([model.joints[model.getJointId(n)].idx_v for n in robot.joint_names], dtype=np.int64)
     q_pin = pin.neutral(model)
-    # Targets are in the world (= base link) frame; Pinocchio poses are in the model root frame.
+    # Targets are in the world frame, which is the model's root frame for a fixed base
+    # (`RobotModel` builds world_from_root into the model).
     base_id = model.getFrameId(robot.config.base_link, pin.BODY)
     if model.frames[base_id].parentJoint != 0:
         raise ValueError(f"base link '{robot.config.base_link}' moves with a joint; IK needs a fixed base")
-    pin.framesForwardKinematics(model, data, q_pin)
-    root_from_target = pin.SE3(data.oMf[base_id].homogeneous @ target)
+    root_from_target = pin.SE3(np.asarray(target, dtype=np.float64))
     tol_angle = math.inf if position_only or orientation_tolerance_rad is None else float(orientation_tolerance_rad)
     damping_eye = (_DAMPING**2) * np.eye(3 if position_only else 6)
 

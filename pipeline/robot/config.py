@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from robonav.pipeline.transforms import PoseSpec
+
 PANDA_URDF = "pybullet_data:franka_panda/panda.urdf"
 
 DESCRIBED_FIELDS: tuple[str, ...] = (
@@ -33,7 +35,14 @@ class RobotConfig:
     urdf: str = PANDA_URDF
     """URDF path; the prefix `pybullet_data:` resolves inside the pybullet_data package."""
     base_link: str = "panda_link0"
-    """Link whose frame is the world frame (the robot base frame)."""
+    """The link whose frame is the robot's base frame, which `world_from_base` places in the world
+    (`robonav robot init` names the URDF's root link; the sim requires the root)."""
+    world_from_base: PoseSpec = PoseSpec((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    """Where `base_link` stands in the world: translation [m] and scalar-last unit quaternion
+    (norm within 1e-3 of 1, normalised when used). The identity (the default) makes the base
+    frame the world frame. Every link pose in the world (planning, collision, IK, the sim,
+    perception's self filter, the view, recordings) follows it; a base link that moves with a
+    planning joint takes only the identity."""
     end_effector_link: str = "panda_hand"
     joint_names: tuple[str, ...] = (
         "panda_joint1", "panda_joint2", "panda_joint3", "panda_joint4",

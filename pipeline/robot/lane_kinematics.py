@@ -59,8 +59,10 @@ class LinkKinematics:
         joint_from_base_rotation: (3, 3) frame placement of the base link.
         joint_from_base_translation_m: (3,) [m].
 
-    world_from_root is the inverse of the base link's pose and is recomputed per state, so a
-    base link below a planning joint works too (it costs one 3x3 product).
+    For a fixed base the model's root frame is the world (`RobotModel` builds world_from_root,
+    `RobotConfig.world_from_base` included, into the joint placements), so joint 0 is the
+    identity. For a base link below a planning joint world_from_root is the inverse of the base
+    link's pose and is recomputed per state (it costs one 3x3 product).
     """
 
     parent: IntArray
@@ -164,8 +166,9 @@ class LinkKinematics:
         Per joint, 33 coefficients: A, B, C (each a row-major 3x3), t (3,) and d (3,), such that
         parent_from_joint(q) has rotation A + sin(q) B + (1 - cos(q)) C and translation t for a
         revolute joint (Rodrigues' formula premultiplied by the placement), rotation A and
-        translation t + q d for a prismatic one. Joint 0 carries world_from_root when the base
-        link hangs from the universe (then every frame comes out in the world frame directly).
+        translation t + q d for a prismatic one. Joint 0, the model's root, is the world
+        (identity) when the base link hangs from the universe, so every frame comes out in the
+        world frame directly; below a planning joint the compiled pass moves frames into the world.
         """
         if "_lane_arrays" in self.__dict__:
             return self.__dict__["_lane_arrays"]
@@ -182,12 +185,7 @@ class LinkKinematics:
             else:
                 coefficients[j, 30:33] = placement @ self.joint_axis[j]
             coefficients[j, 27:30] = self.parent_from_joint_translation_m[j]
-        root_from_base = np.eye(4)
-        root_from_base[:3, :3] = self.joint_from_base_rotation
-        root_from_base[:3, 3] = self.joint_from_base_translation_m
-        world_from_root = np.linalg.inv(root_from_base) if self.base_joint == 0 else np.eye(4)
-        coefficients[0, 0:9] = world_from_root[:3, :3].ravel()
-        coefficients[0, 27:30] = world_from_root[:3, 3]
+        coefficients[0, 0:9] = np.eye(3).ravel()
         joint_from_base = np.concatenate([self.joint_from_base_rotation.ravel(), self.joint_from_base_translation_m])
         arrays = (self.parent, self.joint_type, self.q_slot, coefficients, self.base_joint, joint_from_base)
         self.__dict__["_lane_arrays"] = arrays  # a frozen dataclass: the cache bypasses __setattr__

@@ -4,8 +4,8 @@
 geometry). A recording or a remote viewer has the URDF text of `robot/description` and joint
 states that name their joints, and wants every link, fingers included. This builds Pinocchio's
 kinematic model from the text alone (no mesh is read) and places each link in the base frame
-(`world`): joints the state does not name sit at `fixed_joint_positions`, a `<mimic>` joint
-follows its leader, any other at 0.
+placed at `world_from_base` in `world`: joints the state does not name sit at
+`fixed_joint_positions`, a `<mimic>` joint follows its leader, any other at 0.
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ from robonav.pipeline.types import FloatArray
 
 
 class LinkFrames:
-    """world_from_link of every link of a URDF, the world frame being `base_frame`'s.
+    """world_from_link of every link of a URDF whose `base_frame` stands at `world_from_base`
+    (4, 4) in the world (None: the identity, the base frame is the world).
 
     Not thread-safe: forward kinematics reuses one Pinocchio data buffer.
 
@@ -29,7 +30,8 @@ class LinkFrames:
         ValueError: the text is not a URDF Pinocchio can build, or `base_frame` is not one of its links.
     """
 
-    def __init__(self, urdf: str, base_frame: str, fixed_joint_positions: Mapping[str, float] | None = None) -> None:
+    def __init__(self, urdf: str, base_frame: str, fixed_joint_positions: Mapping[str, float] | None = None,
+                 world_from_base: FloatArray | None = None) -> None:
         try:
             root = ET.fromstring(urdf)
             self._model = pin.buildModelFromXML(urdf)
@@ -39,6 +41,9 @@ class LinkFrames:
         if base_frame not in self.link_names:
             raise ValueError(f"base frame '{base_frame}' is not a link of the URDF (links: {list(self.link_names)})")
         self.base_frame = base_frame
+        self._world_from_base = np.eye(4) if world_from_base is None else np.asarray(world_from_base, dtype=np.float64)
+        if self._world_from_base.shape != (4, 4) or not np.isfinite(self._world_from_base).all():
+            raise ValueError(f"world_from_base must be a finite (4, 4) transform, got shape {self._world_from_base.shape}")
         # (parent link, child link) of every joint, in URDF order: the tree a viewer's transforms follow.
         edges = []
         for joint in root.findall("joint"):
@@ -92,7 +97,7 @@ class LinkFrames:
         if bad:
             raise ValueError(f"joint positions must be finite: {bad} are not")
         pin.framesForwardKinematics(self._model, self._data, self._q(positions))
-        world_from_root = np.linalg.inv(self._data.oMf[self._base_id].homogeneous)
+        world_from_root = self._world_from_base @ np.linalg.inv(self._data.oMf[self._base_id].homogeneous)
         return {name: world_from_root @ self._data.oMf[fid].homogeneous for name, fid in self._frame_ids.items()}
 
     def tree_transforms(self, positions: Mapping[str, float],

@@ -1,6 +1,11 @@
 """Kinematic and collision model of a robot arm: Pinocchio forward kinematics plus URDF link geometry.
 
-The world frame is the frame of `RobotConfig.base_link`. Joints outside the planning group are
+The base frame (`RobotConfig.base_link`) stands at `RobotConfig.world_from_base` in the world
+(the identity by default). For a base rigidly attached to the URDF root, that pose is built into
+the Pinocchio model itself: the placements of everything hanging from Pinocchio's universe are
+premultiplied by world_from_root, so the model's root frame IS the world and every consumer of
+the model (forward kinematics, the compiled lane kinematics, IK) works in the world without a
+correction of its own. Joints outside the planning group are
 locked at `RobotConfig.fixed_joint_positions` (0 when not given, or the mimicked joint's locked
 value for a `<mimic>` joint) by reducing the Pinocchio model, so every configuration vector `q`
 holds exactly the planning joints in `RobotConfig.joint_names` order.
@@ -69,6 +74,20 @@ class RobotModel:
         """Prefer `from_config`; this constructor trusts its (already consistent) arguments."""
         self._config = config
         self._dof = len(config.joint_names)
+        self._base_id = model.getFrameId(config.base_link, pin.BODY)
+        # A base rigidly attached to the model root has a constant pose, so the world can be the
+        # model's root: world_from_root goes into the model once instead of into every pose.
+        self._root_is_world = model.frames[self._base_id].parentJoint == 0
+        world_from_base = config.world_from_base.matrix
+        if self._root_is_world:
+            data = model.createData()
+            pin.framesForwardKinematics(model, data, pin.neutral(model))
+            world_from_root = world_from_base @ np.linalg.inv(data.oMf[self._base_id].homogeneous)
+            if not np.allclose(world_from_root, np.eye(4), rtol=0.0, atol=1e-12):
+                model = _rooted_in_world(model, world_from_root)
+        elif not np.allclose(world_from_base, np.eye(4), rtol=0.0, atol=1e-12):
+            raise ValueError(f"robot.world_from_base must be the identity when robot.base_link "
+                             f"'{config.base_link}' moves with a joint (the world frame then follows that link)")
         self._model = model
         self._data = model.createData()
         self._q_index = q_index
@@ -76,15 +95,6 @@ class RobotModel:
         self._link_shapes = link_shapes
         self._frame_ids = {name: model.getFrameId(name, pin.BODY) for name in link_shapes}
         self._frame_id_list = list(self._frame_ids.values())
-        self._base_id = model.getFrameId(config.base_link, pin.BODY)
-        # A base rigidly attached to the model root has a constant pose: invert it once.
-        self._base_is_fixed = model.frames[self._base_id].parentJoint == 0
-        if self._base_is_fixed:
-            pin.framesForwardKinematics(model, self._data, self._q_buffer)
-        self._world_from_root_fixed = (
-            np.linalg.inv(self._data.oMf[self._base_id].homogeneous) if self._base_is_fixed else None
-        )
-        self._root_is_world = self._base_is_fixed and bool(np.allclose(self._world_from_root_fixed, np.eye(4)))
         base_joint = model.frames[self._base_id].parentJoint
         self._static_links = tuple(name for name, fid in self._frame_ids.items()
                                    if model.frames[fid].parentJoint == base_joint)
@@ -271,8 +281,7 @@ class RobotModel:
         pin.framesForwardKinematics(self._model, self._data, self._q_buffer)
 
     def _world_from_root(self) -> FloatArray:
-        if self._world_from_root_fixed is not None:
-            return self._world_from_root_fixed
+        """Only for a base below a planning joint: the world is the base frame at the last `_forward`."""
         return np.linalg.inv(self._data.oMf[self._base_id].homogeneous)
 
     def link_poses(self, q: FloatArray) -> dict[str, FloatArray]:
@@ -280,7 +289,7 @@ class RobotModel:
         self._forward(self.validate_q(q))
         root_from_frame = self._data.oMf  # Pinocchio: pose of each frame in its root (o)
         if self._root_is_world:
-            # The common case (base link = URDF root) skips 11 matrix products per call.
+            # The common case (a fixed base) skips 11 matrix products per call.
             return {name: root_from_frame[fid].homogeneous for name, fid in self._frame_ids.items()}
         world_from_root = self._world_from_root()
         return {name: world_from_root @ root_from_frame[fid].homogeneous for name, fid in self._frame_ids.items()}
@@ -300,7 +309,8 @@ class RobotModel:
         if not self._model.existFrame(link_name):
             raise ValueError(f"link_name '{link_name}' is not a frame of robot '{self._config.name}'")
         self._forward(self.validate_q(q))
-        return self._world_from_root() @ self._data.oMf[self._model.getFrameId(link_name)].homogeneous
+        root_from_frame = self._data.oMf[self._model.getFrameId(link_name)].homogeneous
+        return root_from_frame if self._root_is_world else self._world_from_root() @ root_from_frame
 
     def link_poses_batch(self, qs: FloatArray) -> dict[str, FloatArray]:
         """world_from_link (M, 4, 4) of every checked link for each row of `qs` (M, dof)."""
@@ -312,6 +322,22 @@ class RobotModel:
             for name, pose in self.link_poses(self.validate_q(arr[k], f"qs[{k}]")).items():
                 out[name][k] = pose
         return out
+
+
+def _rooted_in_world(model: pin.Model, world_from_root: FloatArray) -> pin.Model:
+    """A copy of `model` whose root frame is the world: every joint and frame hanging from the
+    universe is placed by `world_from_root` (4, 4) @ its own placement."""
+    out = model.copy()
+    world_from_root_se3 = pin.SE3(world_from_root)
+    for j in range(1, out.njoints):
+        if out.parents[j] == 0:
+            out.jointPlacements[j] = world_from_root_se3 * out.jointPlacements[j]
+    for f in range(1, len(out.frames)):  # frame 0 is the universe itself: it stays the world origin
+        frame = out.frames[f]
+        if frame.parentJoint == 0:
+            frame.placement = world_from_root_se3 * frame.placement
+            out.frames[f] = frame
+    return out
 
 
 def _check_names(full: pin.Model, cfg: RobotConfig, urdf_name: str, root: ET.Element) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 from typing import Any
 
@@ -11,7 +12,9 @@ import pytest
 
 from robonav.pipeline.evaluation.mbm import MBM_PANDA_POSITION_LIMITS_RAD, MbmProblemSet, mbm_robot_config, parse_mbm
 from robonav.pipeline.evaluation.mesh_check import MeshCollisionChecker
+from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.transforms import PoseSpec
 
 from ...conftest import MBM_DIR
 
@@ -74,6 +77,9 @@ def test_mbm_robot_config_applies_limits_fingers_and_pairs(
     gap = np.linalg.norm(poses["panda_leftfinger"][:3, 3] - poses["panda_rightfinger"][:3, 3])
     assert gap == pytest.approx(0.13)  # 0.065 m each, beyond the URDF's 0.04 m limit
     assert mbm_robot_config(problem_sets["cage"], padding_m=0.01).padding_m == 0.01
+    # The obstacles are in the base frame: a robot file placing the robot elsewhere does not move it here.
+    placed = dataclasses.replace(RobotConfig(), world_from_base=PoseSpec((1.0, 2.0, 0.5), (0.0, 0.0, 0.6, 0.8)))
+    np.testing.assert_array_equal(mbm_robot_config(problem_sets["box"], base=placed).world_from_base.matrix, np.eye(4))
 
 
 def test_starts_and_goals_are_free_on_the_meshes_and_within_limits(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 from robonav.pipeline.planning.ik import IkStatus, pose_error, solve_ik
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.transforms import PoseSpec
 
 LINK = "panda_hand"
 
@@ -190,3 +192,20 @@ def test_bad_input_raises(panda: RobotModel) -> None:
         solve_ik(panda, good, LINK, rng=rng, max_iterations=0)
     with pytest.raises(ValueError, match="max_solutions"):
         solve_ik(panda, good, LINK, rng=rng, max_solutions=0)
+
+
+def test_targets_are_in_the_world_when_the_robot_stands_elsewhere(panda: RobotModel) -> None:
+    # A target the robot at the origin reaches is, for the robot moved and turned, the same
+    # target moved and turned with it; the solution is the same joint state.
+    posed = RobotModel.from_config(dataclasses.replace(
+        panda.config, world_from_base=PoseSpec((0.6, -0.4, 0.2), (0.0, 0.0, math.sin(0.6), math.cos(0.6)))))
+    rng = np.random.default_rng(31)
+    q_true = _random_q(panda, rng)
+    target = posed.config.world_from_base.matrix @ panda.frame_pose(q_true, LINK)
+    result = solve_ik(posed, target, LINK, rng=rng, seed_q=q_true, position_tolerance_m=1e-4,
+                      orientation_tolerance_rad=1e-3)
+    assert result.status is IkStatus.SUCCESS and result.attempts == 1, result.detail
+    np.testing.assert_allclose(result.solutions[0], q_true, atol=1e-9)
+    # The robot at the origin does not reach the moved target from there.
+    unmoved = solve_ik(panda, target, LINK, rng=rng, seed_q=q_true, max_restarts=0)
+    assert unmoved.status is not IkStatus.SUCCESS

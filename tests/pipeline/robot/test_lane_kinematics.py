@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.transforms import PoseSpec
 
 KUKA = RobotConfig(
     name="iiwa", urdf="pybullet_data:kuka_iiwa/model.urdf", base_link="lbr_iiwa_link_0",
@@ -52,6 +54,16 @@ def test_panda_matches_pinocchio(panda: RobotModel) -> None:
 
 def test_kuka_iiwa_matches_pinocchio() -> None:
     _assert_matches(RobotModel.from_config(KUKA), seed=2)
+
+
+def test_robot_standing_elsewhere_matches_pinocchio(panda: RobotModel) -> None:
+    # Rotated about a tilted axis and moved: the lane tables come out in the world as the model's.
+    posed = RobotModel.from_config(dataclasses.replace(
+        panda.config, world_from_base=PoseSpec((-0.5, 0.7, 0.3), (0.2, -0.3, 0.4, 0.8426149773176358))))
+    _assert_matches(posed, seed=6, count=50)
+    q = posed.home_position_rad
+    np.testing.assert_allclose(LinkKinematics.from_robot(posed).link_pose_stack(q),
+                               posed.config.world_from_base.matrix @ panda.link_pose_stack(q), atol=1e-9, rtol=0)
 
 
 def test_base_below_a_planning_joint_matches_pinocchio() -> None:
