@@ -64,12 +64,15 @@ def projection_matrix(intrinsics: IntrinsicsSpec, supersample: int) -> FloatArra
 
 
 class CalibrationScene:
-    """The robot (fixed base at the world origin) and a board quad; pose both, then render."""
+    """The robot (fixed base at `robot.world_from_base`) and a board quad; pose both, then render."""
 
     def __init__(self, robot: RobotConfig, board: BoardSpec) -> None:
         self._client = p.connect(p.DIRECT)
         try:
+            quat = np.asarray(robot.world_from_base.quat_xyzw, dtype=np.float64)
             self._robot = p.loadURDF(str(resolve_urdf_path(robot.urdf, robot.package_paths)), useFixedBase=True,
+                                     basePosition=list(robot.world_from_base.position_m),
+                                     baseOrientation=(quat / np.linalg.norm(quat)).tolist(),
                                      flags=p.URDF_USE_MATERIAL_COLORS_FROM_MTL, physicsClientId=self._client)
             names = {p.getJointInfo(self._robot, j, physicsClientId=self._client)[1].decode(): j
                      for j in range(p.getNumJoints(self._robot, physicsClientId=self._client))}

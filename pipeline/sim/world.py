@@ -1,7 +1,8 @@
 """A headless pybullet world: the arm, obstacles (static bodies, moved by teleporting) and depth cameras.
 
 Each `SimWorld` owns its own DIRECT physics client and passes `physicsClientId` to every
-call, so several worlds coexist in one process. The world frame is the robot base frame.
+call, so several worlds coexist in one process. The arm's root link stands at
+`robot.world_from_base` in the world frame (the identity by default).
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ class SimWorld:
     `set_joint_target` depends on `SimConfig.follow` (see `SimConfig`). Self-collision is off.
 
     Args:
-        robot: Robot description; its URDF is loaded with a fixed base at the world origin.
+        robot: Robot description; its URDF is loaded with a fixed base at `robot.world_from_base`.
         camera: Depth camera `render_depth` renders unless given another.
         sim: Physics rate, following mode and obstacles.
 
@@ -108,15 +109,18 @@ class SimWorld:
             try:
                 # No URDF_USE_SELF_COLLISION flag: the arm never collides with itself here; self-collision
                 # is the planner's business and would only add solver noise at the wrist.
+                position, quat = config.world_from_base.position_m, np.asarray(config.world_from_base.quat_xyzw)
                 with quiet_native_output():
-                    self._robot = p.loadURDF(str(resolved), useFixedBase=True, physicsClientId=cid)
+                    self._robot = p.loadURDF(str(resolved), basePosition=list(position),
+                                             baseOrientation=(quat / np.linalg.norm(quat)).tolist(), useFixedBase=True,
+                                             physicsClientId=cid)
             except p.error as exc:
                 raise ValueError(f"robot.urdf '{config.urdf}' could not be loaded from {urdf_path}") from exc
 
         base_name = p.getBodyInfo(self._robot, physicsClientId=cid)[0].decode()
         if config.base_link != base_name:
             raise ValueError(f"robot.base_link '{config.base_link}' is not the root link '{base_name}' of "
-                             f"{config.urdf}; the sim puts the root link at the world origin")
+                             f"{config.urdf}; the sim places the root link at robot.world_from_base")
         self._link_names: dict[int, str] = {-1: base_name}
         all_joints: list[str] = []
         movable: dict[str, tuple[int, float, float, float]] = {}  # name -> (index, lower, upper, effort)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
+
 import numpy as np
 import pytest
 
@@ -9,6 +12,7 @@ from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.sim.cell import CellPlacement, RobotReach, robot_reach
 from robonav.pipeline.sim.scenes import ClutterConfig, clutter_scene
+from robonav.pipeline.transforms import PoseSpec
 
 from ...conftest import PANDA_TEST_CONFIG
 
@@ -26,6 +30,18 @@ def test_the_shoulder_is_on_the_first_axis_at_the_height_of_the_first_lifting_jo
     iiwa = robot_reach(RobotModel.from_config(IIWA))
     np.testing.assert_allclose(iiwa.shoulder_m, [0.0, 0.0, 0.36], atol=1e-9)
     assert robot_reach(RobotModel.from_config(IIWA)) == iiwa, "seeded: the same cell every time"
+
+
+def test_a_robot_standing_elsewhere_takes_the_cell_with_it() -> None:
+    # Moved and turned about the vertical (as every arm here turns its first joint).
+    pose = PoseSpec((1.5, -0.5, 0.2), (0.0, 0.0, math.sin(0.5), math.cos(0.5)))
+    panda = robot_reach(RobotModel.from_config(PANDA_TEST_CONFIG))
+    posed = robot_reach(RobotModel.from_config(dataclasses.replace(PANDA_TEST_CONFIG, world_from_base=pose)))
+    np.testing.assert_allclose(posed.shoulder_m, [1.5, -0.5, 0.533], atol=1e-9)
+    assert posed.reach_m == pytest.approx(panda.reach_m, abs=1e-9)
+    placement = CellPlacement(panda, posed)
+    assert placement.scale == pytest.approx(1.0)
+    np.testing.assert_allclose(placement.point([0.6, 0.1, 0.2]), [2.1, -0.4, 0.4], atol=1e-9)
 
 
 def test_points_keep_their_place_relative_to_the_shoulder_scaled_by_reach() -> None:

@@ -15,10 +15,11 @@ from robonav.pipeline.camera import CameraConfig
 from robonav.pipeline.config import ConfigError, from_mapping
 from robonav.pipeline.perception.depth import points_from_depth
 from robonav.pipeline.robot.config import RobotConfig
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.world import SimWorld, _create_obstacle, opengl_projection_matrix
-from robonav.pipeline.transforms import look_at_quat_xyzw, transform_points
+from robonav.pipeline.transforms import PoseSpec, look_at_quat_xyzw, transform_points
 from robonav.pipeline.types import FloatArray
 
 ROBOT = RobotConfig()
@@ -338,6 +339,36 @@ def test_missing_joint_or_wrong_base_is_a_value_error() -> None:
     bad_base = dataclasses.replace(ROBOT, base_link="panda_link1")
     with pytest.raises(ValueError, match="base_link"):
         SimWorld(bad_base, SMALL_CAMERA, SimConfig())
+
+
+def test_the_arm_stands_where_robot_world_from_base_puts_it() -> None:
+    # Turned about a tilted axis and moved: pybullet's link frames are the planner model's.
+    pose = PoseSpec((0.5, -0.4, 0.3), (0.1, 0.2, 0.3, math.sqrt(1.0 - 0.14)))
+    posed = dataclasses.replace(ROBOT, world_from_base=pose)
+    model = RobotModel.from_config(posed)
+    rng = np.random.default_rng(9)
+    with SimWorld(posed, SMALL_CAMERA, SimConfig()) as world:
+        body, cid = world._robot, world._client  # noqa: SLF001 (pybullet's own view of the arm)
+        index = {p.getJointInfo(body, j, physicsClientId=cid)[12].decode(): j
+                 for j in range(p.getNumJoints(body, physicsClientId=cid))}
+        for q in rng.uniform(model.lower_limits_rad, model.upper_limits_rad, size=(5, model.dof)):
+            world.set_joint_positions(q)
+            ours = model.link_poses(q)
+            for link in ("panda_link2", "panda_link5", "panda_hand", "panda_leftfinger"):
+                state = p.getLinkState(body, index[link], computeForwardKinematics=True, physicsClientId=cid)
+                np.testing.assert_allclose(state[4], ours[link][:3, 3], atol=1e-6, err_msg=link)
+                rotation = np.array(p.getMatrixFromQuaternion(state[5])).reshape(3, 3)
+                np.testing.assert_allclose(rotation, ours[link][:3, :3], atol=1e-6, err_msg=link)
+        base_position, base_quat = p.getBasePositionAndOrientation(body, physicsClientId=cid)
+        np.testing.assert_allclose(np.array(p.getMatrixFromQuaternion(base_quat)).reshape(3, 3),
+                                   pose.matrix[:3, :3], atol=1e-6)
+    # A ball at the posed hand touches the posed arm and is far from the arm at the origin.
+    hand_m = model.frame_pose(model.home_position_rad, "panda_hand")[:3, 3]
+    ball = SceneObject("ball", "sphere", tuple(float(v) for v in hand_m), radius_m=0.02)
+    for config, touches in ((posed, True), (ROBOT, False)):
+        with SimWorld(config, SMALL_CAMERA, SimConfig(objects=(ball,))) as world:
+            closest = world.closest_robot_obstacle(0.5)
+            assert (closest is not None and closest.distance_m <= 0.0) is touches, closest
 
 
 def test_sim_config_validation_and_loading() -> None:
