@@ -933,7 +933,7 @@ class RobotDescription(Message):
     urdf: str
     """The URDF text the planner loaded; mesh file names in it are as the URDF gives them."""
     base_frame: str
-    """The robot's base link: the `world` frame of every message."""
+    """The robot's base link, which stands at `world_from_base` in the `world` frame of every message."""
     end_effector_link: str
     """The default link of Cartesian goals."""
     joint_names: tuple[str, ...]
@@ -957,6 +957,8 @@ class RobotDescription(Message):
     """Padding the planner adds around every link [m]."""
     srdf: str | None = None
     """An SRDF, when the robot has one (none yet: `allowed_collision_pairs` carries its content)."""
+    world_from_base: FloatArray | None = array_field("<f8", (4, 4), optional=True)
+    """(4, 4) pose of `base_frame` in the world [m]; absent: the identity (the base frame is the world)."""
 
     def __post_init__(self) -> None:
         _check_same_length("RobotDescription", self.joint_names, lower_limits=self.lower_limits,

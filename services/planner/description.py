@@ -19,4 +19,5 @@ def robot_description(robot: RobotModel, stamp: float | None = None) -> RobotDes
         lower_limits=robot.lower_limits_rad, upper_limits=robot.upper_limits_rad, max_velocity=robot.velocity_limits,
         max_acceleration=robot.acceleration_limits, max_jerk=robot.jerk_limits, home_position=robot.home_position_rad,
         fixed_joint_positions={k: float(v) for k, v in cfg.fixed_joint_positions.items()},
-        allowed_collision_pairs=tuple(f"{a}|{b}" for a, b in cfg.allowed_collision_pairs), padding_m=cfg.padding_m)
+        allowed_collision_pairs=tuple(f"{a}|{b}" for a, b in cfg.allowed_collision_pairs), padding_m=cfg.padding_m,
+        world_from_base=cfg.world_from_base.matrix)

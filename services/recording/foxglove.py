@@ -269,12 +269,13 @@ class FoxgloveConverter:
 
     def _robot_description(self, key: str, robot: RobotDescription) -> tuple[list[Derived], list[Attachment]]:
         def what_counts(r: RobotDescription) -> tuple[Any, ...]:  # the stamp changes with every planner start
-            return r.urdf, r.base_frame, r.end_effector_link, sorted(r.fixed_joint_positions.items())
+            pose = None if r.world_from_base is None else r.world_from_base.tobytes()
+            return r.urdf, r.base_frame, r.end_effector_link, sorted(r.fixed_joint_positions.items()), pose
 
         if self._robot is not None and what_counts(robot) == what_counts(self._robot):
             return [], []
         try:
-            self._links = LinkFrames(robot.urdf, robot.base_frame, robot.fixed_joint_positions)
+            self._links = LinkFrames(robot.urdf, robot.base_frame, robot.fixed_joint_positions, robot.world_from_base)
             self._robot = robot
         except ValueError:  # counted by the writer with its reason; link poses wait for a good one
             self._robot, self._links = None, None

@@ -1,6 +1,6 @@
 """What `robonav view` draws: viser scene nodes for the robot, clouds, map, clusters, path and cameras.
 
-Everything here takes decoded arrays in the world frame (the robot base frame) and turns them
+Everything here takes decoded arrays in the world frame and turns them
 into viser nodes; Zenoh stays in `view.py`. Each layer lives under its own parent frame, so a
 GUI toggle hides a whole layer by that frame's visibility.
 """
@@ -128,9 +128,9 @@ class UrdfPose:
     def __init__(self, server: viser.ViserServer, robot: RobotModel, node: str,
                  color_rgba: tuple[float, float, float, float] | None = None) -> None:
         urdf = load_urdf(robot)
-        # The world frame is `base_link`, which need not be the URDF root.
-        root_from_base = np.asarray(urdf.get_transform(robot.config.base_link, urdf.base_link), dtype=np.float64)
-        world_from_root = np.linalg.inv(root_from_base)
+        # The URDF root's pose in the world, from the model the planner uses: it holds
+        # `robot.world_from_base` and a base link other than the root.
+        world_from_root = robot.frame_pose(robot.home_position_rad, urdf.base_link)
         self.frame = server.scene.add_frame(node, show_axes=False, wxyz=wxyz_of(world_from_root[:3, :3]),
                                             position=world_from_root[:3, 3])
         self._urdf = ViserUrdf(server, urdf, root_node_name=node, mesh_color_override=color_rgba)

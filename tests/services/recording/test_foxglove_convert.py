@@ -4,15 +4,19 @@ robot description is drawn once the description arrives."""
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
+import math
 
 import numpy as np
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.reader import make_reader
 
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.transforms import PoseSpec
 from robonav.pipeline.wire.messages import ExecutorPath, JointState, RobotDescription
 from robonav.services.planner.description import robot_description
 from robonav.services.recording.files import RecordingWriter
@@ -112,3 +116,20 @@ def test_no_foxglove_writes_the_raw_channels_only(panda: RobotModel) -> None:
     assert summary is not None
     assert {c.topic for c in summary.channels.values()} == {f"{ROOT}/robot/description", f"{ROOT}/robot/joint_states"}
     assert list(reader.iter_attachments()) == []
+
+
+def test_the_robot_stands_in_the_recording_where_its_description_puts_it(panda: RobotModel) -> None:
+    pose = PoseSpec((0.5, -1.0, 0.25), (0.0, 0.0, math.sin(0.3), math.cos(0.3)))
+    posed = RobotModel.from_config(dataclasses.replace(panda.config, world_from_base=pose))
+    description = RobotDescription.from_wire(robot_description(posed).to_wire())
+    np.testing.assert_allclose(description.world_from_base, pose.matrix, atol=1e-15)
+    q = posed.home_position_rad
+    state = JointState(stamp=2.0, names=posed.joint_names, position=q, velocity=np.zeros(7))
+    _, topics, _ = _write([(f"{ROOT}/robot/description", description.to_wire()),
+                           (f"{ROOT}/robot/joint_states", state.to_wire())])
+    (transforms,) = [FrameTransforms.FromString(d) for d in topics[f"{ROOT}/robot/joint_states/foxglove"]]
+    root = transforms.transforms[0]  # world -> the URDF root, as robot_state_publisher sends it
+    assert (root.parent_frame_id, root.child_frame_id) == ("world", "panda_link0")
+    translation, rotation = root.translation, root.rotation
+    np.testing.assert_allclose([translation.x, translation.y, translation.z], pose.position_m, atol=1e-12)
+    np.testing.assert_allclose([rotation.x, rotation.y, rotation.z, rotation.w], pose.quat_xyzw, atol=1e-12)
