@@ -373,7 +373,7 @@ def read_extrinsics(path: str | Path) -> CameraExtrinsics:
 
     ```yaml
     camera_id: cam0
-    parent_frame: world          # eye-to-hand: the robot base (world) frame; eye-in-hand: the
+    parent_frame: world          # eye-to-hand: the world frame; eye-in-hand: the
                                  # end-effector link the camera rides on, e.g. panda_hand
     position_m: [1.45, 0.55, 1.05]            # camera optical frame origin in parent_frame [m]
     quat_xyzw: [-0.444, -0.751, 0.420, 0.249] # optical frame orientation in parent_frame

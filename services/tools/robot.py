@@ -126,7 +126,9 @@ def robot_file_text(description: RobotDescription, urdf_ref: str, package_refs: 
     if package_refs:
         lines.append(f"package_paths: [{', '.join(_quoted(p) for p in package_refs)}]")
     lines += [
-        f"base_link: {cfg.base_link}            # the URDF's root link: the world frame",
+        f"base_link: {cfg.base_link}            # the URDF's root link",
+        "world_from_base: {position_m: [0.0, 0.0, 0.0], quat_xyzw: [0.0, 0.0, 0.0, 1.0]}   # where base_link stands "
+        "in the world",
         f"end_effector_link: {cfg.end_effector_link}",
         f"joint_names: [{', '.join(cfg.joint_names)}]",
         "# Position limits are read from the URDF by the model (override with position_limits_rad).",
