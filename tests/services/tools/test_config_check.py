@@ -83,4 +83,4 @@ def test_a_robot_file_is_checked_as_the_robot_section(tmp_path: Path) -> None:
     bad.write_text(text.replace('"../../shared', f'"{REPO_ROOT.parent / "shared"}'), encoding="utf-8")
     cfg, issues = check_config(bad)
     assert cfg is None
-    assert [(issue.key, issue.line) for issue in issues] == [("robot.padding_m", 14), ("robot.gripper", 15)], issues
+    assert [(issue.key, issue.line) for issue in issues] == [("robot.padding_m", 15), ("robot.gripper", 16)], issues
