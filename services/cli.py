@@ -81,6 +81,9 @@ def main(argv: list[str] | None = None) -> int:
     # each other (a 3 ms matrix product took 80 ms), so each process uses one BLAS thread.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     use_numba_cache_dir()  # before any command imports numba; services started by `up` inherit it
+    from robonav.services.table_cache import use_table_cache_dir  # loads numpy: after the BLAS setting
+
+    use_table_cache_dir()  # per-robot tables built once, then read by every process
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="robonav", description="Perception-to-plan pipeline for robot arms over Zenoh.",
                                      epilog="`robonav COMMAND --help` lists a command's own options.")

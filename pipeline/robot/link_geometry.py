@@ -305,8 +305,9 @@ def urdf_with_resolved_meshes(urdf_path: Path, package_paths: Sequence[str | Pat
 def load_mesh(path: Path) -> tuple[FloatArray, IntArray]:
     """Vertices (V, 3) and triangles (T, 3) of an OBJ, STL or COLLADA (.dae) mesh file, in metres.
 
-    COLLADA goes through trimesh (with pycollada), which applies the file's `<unit>` and node
-    transforms; OBJ and STL through open3d, which the rest of the geometry code uses.
+    COLLADA goes through trimesh (with pycollada), which applies the file's node transforms, and
+    is scaled by its `<unit>` here (`collada_unit_m`); OBJ and STL through open3d, which the rest
+    of the geometry code uses.
     """
     if path.suffix.lower() == ".dae":
         return _load_collada(path)
@@ -329,6 +330,35 @@ def load_mesh(path: Path) -> tuple[FloatArray, IntArray]:
     return vertices, triangles
 
 
+def collada_unit_m(path: Path) -> float:
+    """Metres per coordinate unit of a COLLADA file: its `<asset><unit meter=...>`, 1 without one.
+
+    trimesh reads the unit into its `units` metadata but leaves the coordinates as they are, so
+    a file in millimetres would load 1000 times too large.
+
+    Raises:
+        ValueError: unreadable XML, or a unit that is not a positive number.
+    """
+    try:
+        # The asset block comes first: stop at the first element after it, never parse the meshes.
+        for _, element in ET.iterparse(path, events=("start",)):
+            tag = element.tag.rsplit("}", 1)[-1]
+            if tag == "unit":
+                text = element.get("meter", "1")
+                try:
+                    unit_m = float(text)
+                except ValueError:
+                    unit_m = math.nan
+                if not (math.isfinite(unit_m) and unit_m > 0):
+                    raise ValueError(f"mesh '{path}': <unit meter=\"{text}\"> is not a positive number")
+                return unit_m
+            if tag.startswith("library_") or tag == "scene":
+                return 1.0
+    except (ET.ParseError, OSError) as exc:
+        raise ValueError(f"mesh '{path}' cannot be read as COLLADA: {exc}") from exc
+    return 1.0
+
+
 def _load_collada(path: Path) -> tuple[FloatArray, IntArray]:
     import trimesh  # imported lazily: only COLLADA meshes need it
 
@@ -336,7 +366,8 @@ def _load_collada(path: Path) -> tuple[FloatArray, IntArray]:
         loaded = trimesh.load(str(path), force="mesh")
     except Exception as exc:  # trimesh/pycollada raise many types for a bad file
         raise ValueError(f"mesh '{path}' cannot be read as COLLADA: {exc}") from exc
-    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3).copy()
+    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+    vertices = vertices * collada_unit_m(path)  # node transforms are applied: one scale covers them too
     triangles = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3).copy()
     if triangles.shape[0] == 0:
         raise ValueError(f"mesh '{path}' holds no triangles")

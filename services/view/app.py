@@ -25,6 +25,7 @@ import zenoh
 
 from robonav.pipeline.config import ConfigError, require
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.sim.cell import CellPlacement, robot_reach
 from robonav.pipeline.transforms import transform_points
 from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire.messages import ExecutorPath, PlanningSceneState, PointCloud
@@ -37,7 +38,7 @@ from robonav.services.common import (
     setup_logging,
     stop_on_signals,
 )
-from robonav.services.config import RobonavConfig, perceived_world_from_camera
+from robonav.services.config import RobonavConfig, load_config, perceived_world_from_camera
 from robonav.services.keys import Keys
 from robonav.services.view.gate import TOKEN_ENV, TokenGate, is_loopback, new_token
 
@@ -49,6 +50,21 @@ CAMERA_POSITION_M = (1.9, -1.35, 1.35)
 CAMERA_LOOK_AT_M = (0.35, 0.0, 0.35)
 CAMERA_FOV_RAD = 0.87
 """Vertical field of view of the browser's camera [rad] (50 degrees)."""
+
+
+def initial_camera_m(robot: RobotModel) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Where the browser's camera starts and the point it looks at, world frame [m].
+
+    `CAMERA_POSITION_M` and `CAMERA_LOOK_AT_M` frame the packaged config's Panda; another robot's
+    are placed as its cell is (`pipeline/sim/cell.py`): the same place relative to its shoulder,
+    in reaches. The UR5's shoulder is 1 m up: the Panda's camera would see its base only.
+    """
+    packaged = load_config().robot
+    if robot.config == packaged:
+        return CAMERA_POSITION_M, CAMERA_LOOK_AT_M
+    placement = CellPlacement(robot_reach(RobotModel.from_config(packaged)), robot_reach(robot))
+    return (tuple(float(v) for v in placement.point(CAMERA_POSITION_M)),
+            tuple(float(v) for v in placement.point(CAMERA_LOOK_AT_M)))
 
 
 @dataclass(frozen=True)
@@ -134,12 +150,12 @@ class ViewNode:
         # Shadow maps cost more than the whole scene when WebGL renders in software, and a
         # robot cell's view gains little from them.
         self.server.scene.configure_default_lights(cast_shadow=False)
-        self.server.initial_camera.position = CAMERA_POSITION_M
-        self.server.initial_camera.look_at = CAMERA_LOOK_AT_M
+        robot = RobotModel.from_config(cfg.robot)
+        self.server.initial_camera.position, self.server.initial_camera.look_at = initial_camera_m(robot)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         self.server.initial_camera.fov = CAMERA_FOV_RAD
         z_range = (float(cfg.perception.workspace_min_m[2]), float(cfg.perception.workspace_max_m[2]) * 0.8)
-        self.layers = SceneLayers(self.server, RobotModel.from_config(cfg.robot), list(self.cameras.values()),
+        self.layers = SceneLayers(self.server, robot, list(self.cameras.values()),
                                   workspace_z_m=z_range, path_step_rad=options.path_step_rad,
                                   show_spheres=options.spheres)
         self.client = RobonavClient(session, cfg.cell)
@@ -356,6 +372,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="robonav view", description=__doc__.split("\n\n")[0] + " `robonav view bench --help` measures it.")
     parser.add_argument("--config", help="YAML config file (default: the packaged configs/default.yaml)")
+    parser.add_argument("--robot", metavar="FILE",
+                        help="view this robot (a robot file, or a config whose robot section is taken), in the cell "
+                             "placed for it as `robonav demo --robot FILE` and `robonav campaign --robot FILE` place "
+                             "it; default: the robot of --config")
     parser.add_argument("--zenoh-config", metavar="FILE",
                         help="Zenoh JSON5 config (TLS, login: client-viewer.json5, or client-operator.json5 for the "
                              "controls); overrides zenoh.config_file")
@@ -392,6 +412,23 @@ def view_token(args: argparse.Namespace) -> str | None:
     return os.environ.get(TOKEN_ENV) or new_token()
 
 
+def view_config(args: argparse.Namespace) -> RobonavConfig:
+    """The config of `--config` (and `--zenoh-config`), running the robot of `--robot` when given.
+
+    Raises:
+        ConfigError: a bad config, Zenoh config or robot file.
+    """
+    cfg = load_cli_config(args.config, args.zenoh_config)
+    if not args.robot:
+        return cfg
+    # The demo's and the campaign's own reading: the same robot file gives the same robot and
+    # cell, so the view draws clouds and cameras where a stack run with that file has them.
+    # Imported here: it brings in the planner, which the view needs for nothing else.
+    from robonav.services.stack.robot_cell import read_robot, with_robot
+
+    return with_robot(cfg, read_robot(args.robot))
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["bench"]:
@@ -401,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     setup_logging(args.log_level, args.log_format)
     try:
-        cfg = load_cli_config(args.config, args.zenoh_config)
+        cfg = view_config(args)
         options = ViewOptions(host=args.host, port=args.port, max_cloud_points=args.max_cloud_points,
                               cloud_rate_hz=args.cloud_rate_hz, spheres=args.spheres, token=view_token(args))
         width, height = (int(v) for v in args.size.lower().split("x"))

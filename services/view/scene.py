@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,7 @@ from matplotlib import colormaps
 from viser.extras import ViserUrdf
 
 from robonav.pipeline.camera import CameraConfig
-from robonav.pipeline.robot.link_geometry import resolve_mesh_path
+from robonav.pipeline.robot.link_geometry import collada_unit_m, resolve_mesh_path
 from robonav.pipeline.robot.model import RobotModel, resolve_urdf_path
 from robonav.pipeline.transforms import quat_xyzw_from_rotation, rotation_from_quat_xyzw
 from robonav.pipeline.types import FloatArray
@@ -114,12 +115,32 @@ def wxyz_of(rotation: FloatArray) -> npt.NDArray[np.float64]:
 
 
 def load_urdf(robot: RobotModel) -> yourdfpy.URDF:
-    """The robot's URDF with visual meshes, mesh references resolved like the collision model's."""
-    urdf_path = resolve_urdf_path(robot.config.urdf, robot.config.package_paths)
-    packages = robot.config.package_paths
-    return yourdfpy.URDF.load(
-        urdf_path, build_scene_graph=True, load_meshes=True, build_collision_scene_graph=False,
-        load_collision_meshes=False, filename_handler=lambda fname: str(resolve_mesh_path(fname, urdf_path, packages)))
+    """The robot's URDF with visual meshes (see `load_visual_urdf`)."""
+    return load_visual_urdf(resolve_urdf_path(robot.config.urdf, robot.config.package_paths), robot.config.package_paths)
+
+
+def load_visual_urdf(urdf_path: Path, package_paths: Sequence[str | Path] = ()) -> yourdfpy.URDF:
+    """A URDF with its visual meshes in metres, mesh references resolved like the collision model's.
+
+    A COLLADA mesh in other units (`<unit meter="0.001">`) gets that scale on its `<mesh>`:
+    trimesh keeps a COLLADA file's coordinates in the file's unit (`collada_unit_m`).
+    """
+    def resolve(fname: str) -> str:
+        return str(resolve_mesh_path(fname, urdf_path, package_paths))
+
+    description = yourdfpy.URDF.load(urdf_path, build_scene_graph=False, load_meshes=False,
+                                     build_collision_scene_graph=False, load_collision_meshes=False,
+                                     filename_handler=resolve).robot
+    for link in description.links:
+        for visual in link.visuals:
+            mesh = visual.geometry.mesh if visual.geometry is not None else None
+            if mesh is None or not mesh.filename.lower().endswith(".dae"):
+                continue
+            unit_m = collada_unit_m(Path(resolve(mesh.filename)))
+            if unit_m != 1.0:  # yourdfpy scales the loaded scene, node transforms included
+                mesh.scale = unit_m if mesh.scale is None else unit_m * mesh.scale
+    return yourdfpy.URDF(robot=description, build_scene_graph=True, load_meshes=True, build_collision_scene_graph=False,
+                         load_collision_meshes=False, filename_handler=resolve)
 
 
 class UrdfPose:

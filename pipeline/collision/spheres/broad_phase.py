@@ -37,6 +37,7 @@ from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, susp
 from robonav.pipeline.collision.spheres.self_pair_tables import SelfPairTables, build_self_pair_tables
 from robonav.pipeline.collision.spheres.separating_planes import SeparatingPlanes, cached_separating_planes
 from robonav.pipeline.collision.spheres.sphere_model import RobotSphereModel, radii_covering, robot_sphere_model
+from robonav.pipeline.collision.spheres.table_store import dataclass_from_arrays, dataclass_to_arrays, stored, table_key
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
 from robonav.pipeline.robot.link_geometry import LinkShape, grow_hull
 from robonav.pipeline.robot.model import RobotModel
@@ -414,18 +415,20 @@ _NO_STEPS = np.zeros(0, dtype=np.int64)
 _NO_STEPS.flags.writeable = False
 
 
-_pair_tables_of: weakref.WeakKeyDictionary[RobotModel, dict[bytes, SelfPairTables]] = weakref.WeakKeyDictionary()
+_pair_tables_of: weakref.WeakKeyDictionary[RobotModel, dict[str, SelfPairTables]] = weakref.WeakKeyDictionary()
 
 
 def _cached_pair_tables(robot: RobotModel, kin: LinkKinematics, centers_joint: FloatArray, radii_m: FloatArray,
                         link_start: np.ndarray, self_pairs: np.ndarray) -> SelfPairTables:
     """`build_self_pair_tables`, once per robot, spheres and pair list (~0.5 s for the Panda, and
-    every planning world of a robot has the same)."""
-    key = b"".join(np.ascontiguousarray(x).tobytes() for x in (centers_joint, radii_m, link_start, self_pairs))
+    every planning world of a robot has the same), kept in the installed `TableStore` too."""
+    key = table_key("pair-tables", kin, robot.lower_limits_rad, robot.upper_limits_rad, centers_joint, radii_m,
+                    link_start, self_pairs)
     per_robot = _pair_tables_of.setdefault(robot, {})
     if key not in per_robot:
-        per_robot[key] = build_self_pair_tables(kin, robot.lower_limits_rad, robot.upper_limits_rad, centers_joint,
-                                                radii_m, link_start, self_pairs)
+        per_robot[key] = stored(key, lambda: build_self_pair_tables(kin, robot.lower_limits_rad, robot.upper_limits_rad,
+                                                                    centers_joint, radii_m, link_start, self_pairs),
+                                dataclass_to_arrays, dataclass_from_arrays(SelfPairTables))
     return per_robot[key]
 
 

@@ -36,6 +36,7 @@ from scipy.cluster.vq import kmeans2
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 
 from robonav.pipeline.collision.fcl_shapes import convex_shape
+from robonav.pipeline.collision.spheres.table_store import dataclass_from_arrays, dataclass_to_arrays, stored, table_key
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
 from robonav.pipeline.robot.link_geometry import LinkShape
 from robonav.pipeline.robot.model import RobotModel
@@ -264,18 +265,29 @@ def _solid(points: FloatArray) -> bool:
     return bool(np.linalg.svd(centered, compute_uv=False)[-1] > 1e-6 * max(1.0, float(np.abs(centered).max())))
 
 
-_planes_of: weakref.WeakKeyDictionary[RobotModel, dict[bytes, SeparatingPlanes]] = weakref.WeakKeyDictionary()
+_planes_of: weakref.WeakKeyDictionary[RobotModel, dict[str, SeparatingPlanes]] = weakref.WeakKeyDictionary()
 
 
 def cached_separating_planes(robot: RobotModel, kin: LinkKinematics, centers_link: FloatArray, radii_m: FloatArray,
                              link_start: np.ndarray, self_pairs: np.ndarray) -> SeparatingPlanes:
     """`build_separating_planes`, once per robot, spheres and pair list (every planning world of a
-    robot has the same)."""
-    key = b"".join(np.ascontiguousarray(x).tobytes() for x in (centers_link, radii_m, link_start, self_pairs))
+    robot has the same), kept in the installed `TableStore` too."""
+    # Everything the builder reads: the links' shapes, the kinematics and limits its sampled states use.
+    shapes = [robot.link_collision_shapes[link] for link in robot.collision_link_names]
+    key = table_key("separating-planes", robot.collision_link_names, [[_shape_key(s) for s in of_link] for of_link in shapes],
+                    kin, robot.lower_limits_rad, robot.upper_limits_rad, centers_link, radii_m, link_start, self_pairs)
     per_robot = _planes_of.setdefault(robot, {})
     if key not in per_robot:
-        per_robot[key] = build_separating_planes(robot, kin, centers_link, radii_m, link_start, self_pairs)
+        per_robot[key] = stored(key, lambda: build_separating_planes(robot, kin, centers_link, radii_m, link_start,
+                                                                     self_pairs),
+                                dataclass_to_arrays, dataclass_from_arrays(SeparatingPlanes))
     return per_robot[key]
+
+
+def _shape_key(shape: LinkShape) -> tuple:
+    """A shape as the builder sees it: its geometry, not the file it came from."""
+    return (shape.link, shape.kind, shape.link_from_shape, shape.hull_vertices, shape.hull_triangles, shape.vertices,
+            shape.triangles, shape.size_m, shape.radius_m, shape.length_m)
 
 
 def kin_points(kin: LinkKinematics, link: int, points_link: FloatArray) -> FloatArray:

@@ -18,6 +18,7 @@ and `tolerance_m` is added to every radius. k grows from 1 until no sphere reach
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -25,6 +26,7 @@ import numpy as np
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 
+from robonav.pipeline.collision.spheres.table_store import stored, table_key
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.types import FloatArray, IntArray
 
@@ -141,8 +143,21 @@ def robot_sphere_model(
 ) -> RobotSphereModel:
     """Cover every collision shape of every checked link of `robot` with spheres (link frames).
 
-    Covers are cached in-process by hull, so building several worlds for one robot is cheap.
+    Covers are cached in-process by hull, so building several worlds for one robot is cheap, and
+    the whole model in the installed `TableStore` between processes.
     """
+    links = robot.collision_link_names
+    hulls = [shape.hull_vertices for link in links for shape in robot.link_collision_shapes[link]]
+    key = table_key("spheres", links, hulls, float(max_protrusion_m), int(max_spheres_per_shape), float(tolerance_m))
+    model = stored(key, lambda: _build_robot_sphere_model(robot, max_protrusion_m, max_spheres_per_shape, tolerance_m),
+                   _sphere_model_arrays, lambda arrays: _sphere_model_of_arrays(links, arrays))
+    for arr in (model.centers_link_m, model.radii_m, model.link_index, model.shape_index):
+        arr.setflags(write=False)
+    return model
+
+
+def _build_robot_sphere_model(robot: RobotModel, max_protrusion_m: float, max_spheres_per_shape: int,
+                              tolerance_m: float) -> RobotSphereModel:
     centers, radii, link_index, shape_index, covers = [], [], [], [], []
     links = robot.collision_link_names
     flat = 0
@@ -167,6 +182,27 @@ def robot_sphere_model(
     for arr in (model.centers_link_m, model.radii_m, model.link_index, model.shape_index):
         arr.setflags(write=False)
     return model
+
+
+def _sphere_model_arrays(model: RobotSphereModel) -> dict[str, np.ndarray]:
+    return {"centers_link_m": model.centers_link_m, "radii_m": model.radii_m, "link_index": model.link_index,
+            "shape_index": model.shape_index,
+            "cover_counts": np.array([len(c.radii_m) for c in model.covers], dtype=np.int64),
+            "cover_volumes": np.array([(c.hull_volume_m3, c.union_volume_m3, c.max_protrusion_m) for c in model.covers],
+                                      dtype=np.float64).reshape(-1, 3)}
+
+
+def _sphere_model_of_arrays(links: tuple[str, ...], arrays: Mapping[str, np.ndarray]) -> RobotSphereModel:
+    """A model saved by `_sphere_model_arrays`; each cover's spheres are its rows of the model's."""
+    centers, radii = arrays["centers_link_m"], arrays["radii_m"]
+    counts, volumes = arrays["cover_counts"], arrays["cover_volumes"]
+    if counts.sum() != len(radii) or len(volumes) != len(counts) or centers.shape != (len(radii), 3):
+        raise ValueError("stored sphere model does not add up")
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    covers = tuple(SphereCover(centers[a:b].copy(), radii[a:b].copy(), float(v[0]), float(v[1]), float(v[2]))
+                   for a, b, v in zip(starts[:-1], starts[1:], volumes))
+    return RobotSphereModel(link_names=links, centers_link_m=centers, radii_m=radii, link_index=arrays["link_index"],
+                            shape_index=arrays["shape_index"], covers=covers)
 
 
 def radii_covering(points_m: FloatArray, centers_m: FloatArray, radii_m: FloatArray, *,

@@ -2,8 +2,8 @@
 
 Sections (run in this order; `--sections` picks some):
 
-- `cold_start`: `robonav up` with an empty compile cache: when all services are alive, and the
-  first plan;
+- `cold_start`: `robonav up` with empty caches (compiled kernels, per-robot tables): when all
+  services are alive, and the first plan;
 - `long_request`: a plan while an RRT* request with a very long budget runs;
 - `overload`: clouds at twice the camera rate: memory growth per service, maps still published;
 - `kill`: SIGKILL each service (and the router) while the arm moves: back within how long, the

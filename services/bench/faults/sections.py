@@ -24,6 +24,7 @@ from robonav.services.bench.faults.stack import LiveStack, free_port, plan_and_e
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.keys import SERVICES
 from robonav.services.stack.roles import forged_delivered, logins, probe_roles
+from robonav.services.table_cache import TABLE_CACHE_ENV
 
 ALIVE_TIMEOUT_S = 120.0
 READY_TIMEOUT_S = 90.0
@@ -56,9 +57,11 @@ def first_plan(client: RobonavClient, goal_rad: np.ndarray, *, seed: int, timeou
 
 
 def cold_start(config_path: Path, goal_rad: np.ndarray, *, seed: int, log_dir: Path) -> dict[str, Any]:
-    """`robonav up` with an empty compile cache: when are all services alive, and the first plan?"""
+    """`robonav up` with empty caches (compiled kernels, per-robot tables): when are all services
+    alive, and the first plan?"""
     with tempfile.TemporaryDirectory(prefix="robonav-cold-cache-") as cache:
-        stack = LiveStack(config_path, env={"NUMBA_CACHE_DIR": cache}, log_path=log_dir / "cold_start.log")
+        stack = LiveStack(config_path, env={"NUMBA_CACHE_DIR": cache, TABLE_CACHE_ENV: str(Path(cache) / "tables")},
+                          log_path=log_dir / "cold_start.log")
         try:
             with stack.connect() as session:
                 client = RobonavClient(session, stack.cfg.cell)

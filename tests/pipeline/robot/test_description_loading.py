@@ -1,5 +1,6 @@
-"""Robot descriptions load as written: package:// URIs, relative paths, COLLADA meshes, prismatic and
-continuous joints, welded joints named by group states; config errors all reported at once."""
+"""Robot descriptions load as written: package:// URIs, relative paths, COLLADA meshes (in metres
+whatever their unit), prismatic and continuous joints, welded joints named by group states;
+config errors all reported at once."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.config import CONTINUOUS_JOINT_RANGE_RAD, RobotConfig
 from robonav.pipeline.robot.description import describe_robot
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
+from robonav.pipeline.robot.link_geometry import collada_unit_m, load_mesh
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 
@@ -82,6 +84,23 @@ def test_collada_mesh_is_read_with_its_extent(description: tuple[Path, Path]) ->
     assert bar.source.endswith("bar.dae") and bar.kind == "mesh"
     np.testing.assert_allclose(bar.hull_vertices.min(axis=0), [0.0, -0.03, -0.03], atol=1e-6)
     np.testing.assert_allclose(bar.hull_vertices.max(axis=0), [0.4, 0.03, 0.03], atol=1e-6)
+
+
+def test_collada_mesh_in_millimetres_is_read_in_metres(tmp_path: Path) -> None:
+    """trimesh keeps a COLLADA file's coordinates in the file's `<unit>`; the model scales them."""
+    text = trimesh.creation.box(extents=(400.0, 60.0, 60.0)).export(file_type="dae")
+    text = text.decode() if isinstance(text, bytes) else text
+    assert "<unit" not in text
+    path = tmp_path / "bar_mm.dae"
+    path.write_text(text.replace("<up_axis>", '<unit name="millimeter" meter="0.001"/><up_axis>', 1))
+    assert collada_unit_m(path) == 0.001
+    vertices, triangles = load_mesh(path)
+    assert len(triangles) == 12
+    np.testing.assert_allclose(vertices.max(axis=0) - vertices.min(axis=0), [0.4, 0.06, 0.06], atol=1e-9)
+    bad = tmp_path / "bad.dae"
+    bad.write_text(text.replace("<up_axis>", '<unit meter="-1"/><up_axis>', 1))
+    with pytest.raises(ValueError, match="not a positive number"):
+        load_mesh(bad)
 
 
 def test_prismatic_and_continuous_joints_move_and_plan(description: tuple[Path, Path]) -> None:

@@ -36,11 +36,23 @@ from robonav.services.common import declare_latched_publisher, declare_latched_s
 from robonav.services.config import ZenohConfig, load_config  # noqa: E402
 from robonav.services.executor.node import ExecutorNode  # noqa: E402
 from robonav.services.keys import Keys  # noqa: E402
-from robonav.services.view.app import ViewNode, ViewOptions  # noqa: E402
+from robonav.services.stack.robot_cell import read_robot, with_robot  # noqa: E402
+from robonav.services.view.app import (  # noqa: E402
+    CAMERA_LOOK_AT_M,
+    CAMERA_POSITION_M,
+    ViewNode,
+    ViewOptions,
+    initial_camera_m,
+    main,
+    parse_args,
+    view_config,
+)
 from robonav.services.view.clusters import decode_clusters  # noqa: E402
 from robonav.services.view.scene import cameras_of, decimate, height_colors, interpolate_path, wxyz_of  # noqa: E402
 
-from ..conftest import free_port  # noqa: E402
+from ...conftest import REPO_ROOT  # noqa: E402
+from ..conftest import free_port, write_turn_lift_reach  # noqa: E402
+from .conftest import project  # noqa: E402
 
 CONFIG = load_config()
 HOME = np.array(CONFIG.robot.home_position_rad)
@@ -257,6 +269,64 @@ def test_executor_publishes_the_accepted_path_latched(endpoint: str) -> None:
         node.close()
         client_session.close()
         node_session.close()
+
+
+def test_robot_option_takes_a_robot_file_or_a_configs_robot_as_the_demo_does(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        parse_args(["--help"])
+    assert "--robot FILE" in capsys.readouterr().out
+    robot_file = write_turn_lift_reach(tmp_path)
+    cfg = view_config(parse_args(["--robot", str(robot_file)]))
+    # The demo's and the campaign's reading: the robot, and the cell (cameras) placed for it.
+    assert cfg == with_robot(CONFIG, read_robot(robot_file)) and cfg.robot.name == "turn_lift_reach"
+    assert [c.position_m for c in cfg.cameras] != [c.position_m for c in CONFIG.cameras]
+    iiwa = REPO_ROOT / "configs" / "iiwa.yaml"
+    assert view_config(parse_args(["--robot", str(iiwa)])).robot == load_config(iiwa).robot
+    assert view_config(parse_args([])) == CONFIG
+
+
+def test_robot_option_refuses_a_bad_robot_file(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: nothing\nurdf: missing.urdf\n", encoding="utf-8")
+    assert main(["--robot", str(bad), "--port", "0"]) == 2
+    assert str(bad) in caplog.text
+
+
+@pytest.mark.parametrize("robot_file", [None, "ur5.yaml", "iiwa.yaml"])
+def test_the_browser_camera_starts_on_the_whole_robot_at_home(robot_file: str | None) -> None:
+    """The Panda's starting camera is the view's constant; another robot's is placed for its
+    shoulder and reach, so every link at home is in the picture (the browser test's 476 x 480
+    canvas, 10 px in)."""
+    robot = RobotModel.from_config(CONFIG.robot if robot_file is None else read_robot(REPO_ROOT / "configs" / robot_file))
+    points_m = np.array([pose[:3, 3] for pose in robot.link_poses(robot.home_position_rad).values()])
+    eye_m, target_m = initial_camera_m(robot)
+
+    def in_picture(eye: tuple[float, ...], target: tuple[float, ...]) -> bool:
+        px = project(points_m, 476, 480, eye, target)
+        return bool(np.all((px >= 10) & (px <= (466, 470))))
+
+    assert in_picture(eye_m, target_m)
+    if robot_file is None:
+        assert (eye_m, target_m) == (CAMERA_POSITION_M, CAMERA_LOOK_AT_M)
+    if robot_file == "ur5.yaml":  # its shoulder is 1 m up: the Panda's camera cuts off its upper links
+        assert not in_picture(CAMERA_POSITION_M, CAMERA_LOOK_AT_M)
+
+
+def test_the_view_of_a_robot_file_draws_its_collision_spheres(endpoint: str, tmp_path: Path) -> None:
+    """`robonav view --robot FILE --spheres`: the planner's spheres of that robot, not the config's."""
+    args = parse_args(["--robot", str(write_turn_lift_reach(tmp_path)), "--spheres"])
+    cfg = dataclasses.replace(view_config(args), zenoh=ZenohConfig(connect=(endpoint,)))
+    session = open_session(cfg.zenoh)
+    node = ViewNode(cfg, session, ViewOptions(port=0, spheres=args.spheres))
+    try:
+        spheres = node.layers.spheres
+        assert node.layers.robot.config == cfg.robot and spheres.root.visible and spheres.model is not None
+        assert set(spheres.model.link_names) == {"foot", "column", "carriage", "boom", "tool"}
+        assert len(spheres.sphere_nodes) == spheres.model.sphere_count > 0
+    finally:
+        node.close()
+        session.close()
 
 
 def test_gui_plans_executes_and_stops_on_the_live_stack(client: RobonavClient, stack_config: Path) -> None:

@@ -1,10 +1,12 @@
 """The view in a real browser: a `robonav view` process fed over real Zenoh on loopback, opened
 in headless Chromium (Debian's, software WebGL). Once two screenshots in a row are identical,
 the path's colour must be where the path projects, and hiding the robot (showing the collision
-spheres) must change the pixels where the robot (the spheres) project."""
+spheres) must change the pixels where the robot (the spheres) project; the same for the UR5 of
+`robonav view --robot configs/ur5.yaml` (COLLADA visual meshes), in a view in process."""
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import subprocess
 import sys
@@ -33,15 +35,26 @@ from robonav.pipeline.wire.messages import (  # noqa: E402
     SceneObjectSpec,
 )
 from robonav.services.common import declare_latched_publisher, open_session  # noqa: E402
-from robonav.services.config import RobonavConfig, load_config  # noqa: E402
+from robonav.services.config import RobonavConfig, ZenohConfig, load_config  # noqa: E402
 from robonav.services.keys import Keys  # noqa: E402
 from robonav.services.stack.up import Stack  # noqa: E402
-from robonav.services.view.app import CAMERA_FOV_RAD, CAMERA_LOOK_AT_M, CAMERA_POSITION_M  # noqa: E402
+from robonav.services.view.app import (  # noqa: E402
+    CAMERA_FOV_RAD,
+    CAMERA_LOOK_AT_M,
+    CAMERA_POSITION_M,
+    ViewNode,
+    ViewOptions,
+    initial_camera_m,
+    parse_args,
+    view_config,
+)
 from robonav.services.view.browser import find_chromium, open_page, page_url, stable_screenshot  # noqa: E402
 from robonav.services.view.scene import PATH_RGB, interpolate_path  # noqa: E402
 from robonav.services.view.spheres import world_spheres  # noqa: E402
 
+from ...conftest import REPO_ROOT  # noqa: E402
 from ..conftest import free_port, write_config  # noqa: E402
+from .conftest import project  # noqa: E402
 
 pytestmark = pytest.mark.skipif(find_chromium() is None,
                                 reason="Debian's chromium is not installed (`make test` installs it)")
@@ -120,19 +133,6 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Scene]:
     yield scene
     codes = scene.close()
     assert codes == {"view": 0, "router": 0}, f"robonav view did not stop cleanly: {codes}"
-
-
-def project(points_m: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Pixels (N, 2) of world points in the browser camera (three.js: perspective, vertical fov, z up)."""
-    eye, target = np.array(CAMERA_POSITION_M), np.array(CAMERA_LOOK_AT_M)
-    back = (eye - target) / np.linalg.norm(eye - target)
-    right = np.cross([0.0, 0.0, 1.0], back)
-    right /= np.linalg.norm(right)
-    up = np.cross(back, right)
-    d = points_m - eye
-    depth = -(d @ back)
-    focal_px = (height / 2.0) / np.tan(CAMERA_FOV_RAD / 2.0)
-    return np.column_stack([width / 2.0 + focal_px * (d @ right) / depth, height / 2.0 - focal_px * (d @ up) / depth])
 
 
 def rgb(png: bytes) -> np.ndarray:
@@ -250,3 +250,40 @@ def test_view_snapshot_fails_clearly_without_a_robot(scene: Scene, tmp_path: Pat
     assert result.returncode == 1, result.stderr
     assert "no joint state on robonav/nobody/robot/joint_states" in result.stderr
     assert not out.exists()
+
+
+def test_browser_draws_the_ur5_from_its_collada_meshes() -> None:
+    """Another robot's COLLADA visual meshes reach the browser: `robonav view --robot
+    configs/ur5.yaml`'s page, at the view's starting camera for that robot (placed for its shoulder
+    and reach); hiding the robot changes the pixels where its links project, and little beyond."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
+    args = parse_args(["--robot", str(REPO_ROOT / "configs" / "ur5.yaml")])
+    cfg = dataclasses.replace(view_config(args), zenoh=ZenohConfig(connect=(endpoint,)))
+    session = open_session(cfg.zenoh)
+    node = ViewNode(cfg, session, ViewOptions(port=0))
+    try:
+        ur5 = node.layers.robot
+        node.layers.set_robot_joints(ur5.joint_names, ur5.home_position_rad.tolist())
+        eye_m, target_m = initial_camera_m(ur5)
+        query = (f"initialCameraPosition={','.join(map(str, eye_m))}&initialCameraLookAt={','.join(map(str, target_m))}"
+                 f"&initialCameraUp=0,0,1&initialCameraFov={CAMERA_FOV_RAD}")
+        with open_page(page_url(f"{node.url}?{query}"), width=WIDTH, height=HEIGHT) as page:
+            canvas = page.locator("canvas").first
+            with_robot = rgb(stable_screenshot(page, canvas))
+            node.layers.set_visible("robot", False)
+            without = rgb(stable_screenshot(page, canvas))
+    finally:
+        node.close()
+        session.close()
+        router.close()
+    height, width, _ = with_robot.shape
+    changed = np.any(np.abs(with_robot - without) > 8, axis=2)
+    links = ur5.link_poses(ur5.home_position_rad)
+    link_px = project(np.array([pose[:3, 3] for pose in links.values()]), width, height, eye_m, target_m)
+    moved = near(changed, link_px, radius=3)
+    assert moved.mean() >= 0.8, f"hiding the UR5 changed nothing at {sorted(np.array(list(links))[~moved])}"
+    ys, xs = np.nonzero(changed)
+    low, high = link_px.min(axis=0) - 80, link_px.max(axis=0) + 80
+    inside = (xs >= low[0]) & (xs <= high[0]) & (ys >= low[1]) & (ys <= high[1])
+    assert changed.sum() > 500 and inside.mean() > 0.95, (changed.sum(), inside.mean())
