@@ -14,6 +14,7 @@ from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
 from robonav.pipeline.collision.spheres.table_store import WRITEABLE_KEY, stored, table_key, use_table_store
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.transforms import PoseSpec
 
 from ....conftest import PANDA_TEST_CONFIG
 
@@ -88,6 +89,24 @@ def test_a_robot_that_differs_in_what_a_builder_reads_gets_its_own_tables(store:
     _fresh_broad_phase(narrower)
     added = set(store.tables) - first
     assert sorted(key.split("-")[0] for key in added) == ["pair", "separating"]
+
+
+def test_a_robot_standing_elsewhere_gets_its_own_tables_that_answer_the_same(store: DictStore) -> None:
+    at_origin = _fresh_broad_phase(PANDA_TEST_CONFIG)
+    first = set(store.tables)
+    # The pose is built into the kinematics the gap tables and planes hold the base's spheres in:
+    # a moved robot must not read the tables of the robot at the origin (nor the other way round).
+    moved_config = dataclasses.replace(
+        PANDA_TEST_CONFIG, world_from_base=PoseSpec((1.0, -0.5, 0.2), (0.0, 0.6, 0.0, 0.8)))
+    moved = _fresh_broad_phase(moved_config)
+    added = set(store.tables) - first
+    assert sorted(key.split("-")[0] for key in added) == ["pair", "separating"]  # the link-frame spheres are shared
+    # Self-collision does not depend on where the robot stands.
+    robot = RobotModel.from_config(PANDA_TEST_CONFIG)
+    states = np.random.default_rng(8).uniform(robot.lower_limits_rad, robot.upper_limits_rad, size=(300, robot.dof))
+    suspects = [at_origin.self_suspect(q) for q in states]
+    assert suspects == [moved.self_suspect(q) for q in states]
+    assert any(suspects) and not all(suspects)
 
 
 def test_a_damaged_entry_is_built_again_and_replaced(store: DictStore) -> None:
