@@ -370,7 +370,13 @@ def _drop_trial(client: Any, position: list[np.ndarray], box_on: Any, box_since:
         return reply
 
     box_on.clear()
-    time.sleep(0.5)  # perception sees the box gone (it clears within 3 frames)
+    # The timing run preempts each motion before its end, so its last one may still be moving
+    # (on a loaded host, long after the run): a path from the measured position would start
+    # away from the commanded state, which the executor rightly refuses.
+    if not client.wait_for(lambda: client.status is not None and client.status.state.value in ("idle", "stopped", "error"),
+                           60.0):
+        raise RuntimeError(f"drop trial {trial}: the arm is still moving after 60 s: {client.status}")
+    time.sleep(0.5)  # perception sees the box gone (it clears within 3 frames); the measured state settles
     back = move(np.array([position[0].copy(), SWING_FROM]), f"drop-back-{trial}")
     client.wait_for_trajectory(back.trajectory_id, back.duration_s + 5.0)
     time.sleep(0.3)
