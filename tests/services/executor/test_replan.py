@@ -30,6 +30,8 @@ from robonav.services.client import RobonavClient
 from robonav.services.config import load_config
 from robonav.services.planner.scene_specs import object_spec
 
+from ..conftest import plan_and_execute
+
 DEFAULT = load_config()
 # The base swings the arm, hand high and out, from one side of the table to the other: long
 # enough at 30 % speed to drop a box ahead of the hand, and free of the stack's obstacles.
@@ -49,11 +51,7 @@ def _objects(client: RobonavClient, request: SimObjectsRequest) -> SimObjectsRes
 
 
 def _move(client: RobonavClient, goal: np.ndarray) -> None:
-    plan = client.plan(goal, allowed_planning_time=5.0, seed=3)
-    assert isinstance(plan, PlanResponse), plan
-    execution = client.execute(plan.path, joint_names=plan.joint_names)
-    assert isinstance(execution, ExecuteResponse), execution
-    assert client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + 20.0) == "succeeded"
+    assert plan_and_execute(client, goal, seed=3) == "succeeded"
 
 
 def _drop_box_on_the_way(client: RobonavClient, goal: np.ndarray, *, replan: bool,

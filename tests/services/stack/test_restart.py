@@ -44,7 +44,7 @@ from robonav.services.keys import SERVICES
 from robonav.services.stack.status import collect_status
 from robonav.services.stack.up import Stack
 
-from ..conftest import free_port, write_config
+from ..conftest import free_port, plan_and_execute, write_config
 
 START_TIMEOUT_S = 120.0
 BACK_TIMEOUT_S = 60.0
@@ -106,32 +106,8 @@ def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
     assert all(code == 0 for code in codes.values()), codes
 
 
-LOAD_FAULTS = ("JOINT_STATE_STALE", "TRACKING_ERROR")
-"""What the executor's watchdog rightly trips when a loaded host starves the sim or the executor of CPU."""
-
-
 def _plan_and_execute(client: RobonavClient, goal: np.ndarray) -> str:
-    """Plan from the measured state and execute; the outcome, with the executor's error when it is not 'succeeded'.
-
-    A watchdog trip of `LOAD_FAULTS` gets one more try from where the arm stopped: what these tests check is that
-    the restarted stack serves, and the watchdog doing its job on a starved host is tested elsewhere.
-    """
-    for attempt in range(2):
-        plan = client.plan(goal, allowed_planning_time=5.0, seed=1, timeout_s=60.0)
-        assert isinstance(plan, PlanResponse), plan
-        execution = client.execute(plan.path, joint_names=plan.joint_names, max_velocity_scaling_factor=1.0,
-                                   max_acceleration_scaling_factor=1.0)
-        assert isinstance(execution, ExecuteResponse), execution
-        outcome = client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + 20.0)
-        status = client.status
-        if outcome == "succeeded" or status is None:
-            return outcome
-        print(f"execution {attempt + 1}: {outcome} {status.error_code}: {status.error_message}")
-        if status.error_code not in LOAD_FAULTS or attempt == 1:
-            return f"{outcome} {status.error_code}: {status.error_message}"
-        assert client.wait_for(lambda: client.joint_state is not None
-                               and float(np.max(np.abs(client.joint_state.velocity))) < 0.05, 10.0)
-    raise AssertionError("unreachable")
+    return plan_and_execute(client, goal, seed=1)
 
 
 def test_status_lists_every_process_alive_from_another_process(running: Running) -> None:
