@@ -31,11 +31,17 @@ import fcl
 import numpy as np
 
 from robonav.pipeline.collision.spheres.grid_layers import NO_BOXES, NO_SLOTS, VoxelLayer, cell_boxes, cell_layer, voxel_layer
-from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CYLINDER, SPHERE
+from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE
 from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld, edge_suspect_steps, state_suspect_lanes
 from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, suspect_pairs_of_state
+from robonav.pipeline.collision.spheres.piece_gaps import raise_by_piece_gaps
 from robonav.pipeline.collision.spheres.self_pair_tables import SelfPairTables, build_self_pair_tables
-from robonav.pipeline.collision.spheres.separating_planes import SeparatingPlanes, cached_separating_planes
+from robonav.pipeline.collision.spheres.separating_planes import (
+    SeparatingPlanes,
+    cached_separating_planes,
+    joint_frame_pieces,
+    shape_key,
+)
 from robonav.pipeline.collision.spheres.sphere_model import RobotSphereModel, radii_covering, robot_sphere_model
 from robonav.pipeline.collision.spheres.table_store import dataclass_from_arrays, dataclass_to_arrays, stored, table_key
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
@@ -420,15 +426,20 @@ _pair_tables_of: weakref.WeakKeyDictionary[RobotModel, dict[str, SelfPairTables]
 
 def _cached_pair_tables(robot: RobotModel, kin: LinkKinematics, centers_joint: FloatArray, radii_m: FloatArray,
                         link_start: np.ndarray, self_pairs: np.ndarray) -> SelfPairTables:
-    """`build_self_pair_tables`, once per robot, spheres and pair list (~0.5 s for the Panda, and
-    every planning world of a robot has the same), kept in the installed `TableStore` too."""
+    """`build_self_pair_tables` raised by the pieces' distances (`piece_gaps`), once per robot,
+    spheres and pair list (~2 s for the Panda, and every planning world of a robot has the same),
+    kept in the installed `TableStore` too."""
+    shapes = [[shape_key(s) for s in robot.link_collision_shapes[link]] for link in robot.collision_link_names]
     key = table_key("pair-tables", kin, robot.lower_limits_rad, robot.upper_limits_rad, centers_joint, radii_m,
-                    link_start, self_pairs)
+                    link_start, self_pairs, shapes)
     per_robot = _pair_tables_of.setdefault(robot, {})
     if key not in per_robot:
-        per_robot[key] = stored(key, lambda: build_self_pair_tables(kin, robot.lower_limits_rad, robot.upper_limits_rad,
-                                                                    centers_joint, radii_m, link_start, self_pairs),
-                                dataclass_to_arrays, dataclass_from_arrays(SelfPairTables))
+        def build() -> SelfPairTables:
+            tables = build_self_pair_tables(kin, robot.lower_limits_rad, robot.upper_limits_rad, centers_joint, radii_m,
+                                            link_start, self_pairs)
+            return raise_by_piece_gaps(tables, kin, self_pairs, joint_frame_pieces(robot, kin), CONTACT_EPS_M)
+
+        per_robot[key] = stored(key, build, dataclass_to_arrays, dataclass_from_arrays(SelfPairTables))
     return per_robot[key]
 
 

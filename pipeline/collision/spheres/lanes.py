@@ -177,23 +177,34 @@ def points_within(n: int, points_a: FloatArray, i: int, points_b: FloatArray, j:
 
 
 @nb.njit(cache=True)
-def _pair_clear(n: int, p: int, q_lanes: FloatArray, offset: IntArray, slot: IntArray, low: FloatArray, step: FloatArray,
-                count: IntArray, gap: FloatArray) -> bool:  # pragma: no cover
-    """Whether self pair p's table proves its spheres apart in every lane (`self_pair_tables`)."""
+def pair_clear(n: int, p: int, q_lanes: FloatArray, offset: IntArray, slot: IntArray, low: FloatArray, step: FloatArray,
+               count: IntArray, gap: FloatArray) -> bool:  # pragma: no cover
+    """Whether self pair p's table proves it apart in every lane: its spheres (`self_pair_tables`)
+    or its convex pieces, and so its meshes (`piece_gaps`)."""
     if offset[p] < 0:
         return False
     for w in range(n):
-        flat = 0
-        for d in range(2):
-            if slot[p, d] < 0:
-                continue
-            i = int(math.floor((q_lanes[slot[p, d], w] - low[p, d]) / step[p, d] + 0.5))
-            if i < 0 or i >= count[p, d]:
-                return False  # outside the grid: the bound does not hold
-            flat = flat * count[p, d] + i
-        if gap[offset[p] + flat] <= CONTACT_EPS_M + ROUNDING_GUARD_M:
+        if not lane_pair_clear(w, p, q_lanes, offset, slot, low, step, count, gap):
             return False
     return True
+
+
+@nb.njit(cache=True)
+def lane_pair_clear(w: int, p: int, q_lanes: FloatArray, offset: IntArray, slot: IntArray, low: FloatArray,
+                    step: FloatArray, count: IntArray, gap: FloatArray) -> bool:  # pragma: no cover
+    """`pair_clear` for lane w alone: a lane the table proves is not flagged whatever its chunk's
+    other lanes need (the pieces can prove a lane whose spheres touch)."""
+    if offset[p] < 0:
+        return False
+    flat = 0
+    for d in range(2):
+        if slot[p, d] < 0:
+            continue
+        i = int(math.floor((q_lanes[slot[p, d], w] - low[p, d]) / step[p, d] + 0.5))
+        if i < 0 or i >= count[p, d]:
+            return False  # outside the grid: the bound does not hold
+        flat = flat * count[p, d] + i
+    return gap[offset[p] + flat] > CONTACT_EPS_M + ROUNDING_GUARD_M
 
 
 @nb.njit(cache=True)
@@ -319,7 +330,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
         la, lb = self_pairs[p, 0], self_pairs[p, 1]
         if not points_within(lanes, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
             continue
-        if _pair_clear(lanes, p, q_lanes, pair_offset, pair_slot, pair_low, pair_step, pair_count, pair_gap):
+        if pair_clear(lanes, p, q_lanes, pair_offset, pair_slot, pair_low, pair_step, pair_count, pair_gap):
             continue
         _ensure_placed(lanes, la, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
         _ensure_placed(lanes, lb, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
@@ -340,7 +351,8 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
             continue
         for w in range(lanes):
             # A lane flagged already needs no proof; one a plane separates is clear of this pair.
-            if pair_near[w] and not flags[w] and not pair_separated(
+            if pair_near[w] and not flags[w] and not lane_pair_clear(
+                    w, p, q_lanes, pair_offset, pair_slot, pair_low, pair_step, pair_count, pair_gap) and not pair_separated(
                     w, p, frames, link_joint, world.sep_pair_whole, world.sep_pair_range, world.sep_sub_piece,
                     world.sep_sub_start, world.sep_side, world.sep_plane, world.sep_piece_link, world.sep_piece_center,
                     world.sep_piece_radius, world.sep_vertex_start, world.sep_vertices):

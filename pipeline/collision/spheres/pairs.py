@@ -13,7 +13,13 @@ import math
 import numba as nb
 
 from robonav.pipeline.collision.spheres.kernels import BOX, CONTACT_EPS_M, touches_cells, voxel_distance
-from robonav.pipeline.collision.spheres.lanes import LaneWorld, object_distance_lanes, place_lanes, points_within
+from robonav.pipeline.collision.spheres.lanes import (
+    LaneWorld,
+    object_distance_lanes,
+    pair_clear,
+    place_lanes,
+    points_within,
+)
 from robonav.pipeline.collision.spheres.separating_planes import link_outside_box, pair_separated
 from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes, link_pose_from_lane
 from robonav.pipeline.types import BoolArray, FloatArray
@@ -82,6 +88,9 @@ def suspect_pairs_of_state(q: FloatArray, world: LaneWorld, object_flags: BoolAr
         la, lb = self_pairs[p, 0], self_pairs[p, 1]
         self_flags[p] = False
         if not points_within(1, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
+            continue
+        if pair_clear(1, p, q_lanes, world.pair_offset, world.pair_slot, world.pair_low, world.pair_step,
+                      world.pair_count, world.pair_gap):
             continue
         for sa in range(link_start[la], link_start[la + 1]):
             for sb in range(link_start[lb], link_start[lb + 1]):

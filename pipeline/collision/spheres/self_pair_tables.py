@@ -10,7 +10,9 @@ far the spheres can move over half a grid step, bounds the gap from below. Where
 clears the contact tolerance the pair's sphere-against-sphere test cannot flag and is skipped,
 so the broad phase answers exactly as without the table. On MotionBenchMaker edges in an empty
 scene the self pairs were half of the per-state time, and these four pairs most of that; with
-the tables a state costs about a fifth less.
+the tables a state costs about a fifth less. Where the spheres prove little, `piece_gaps`
+raises the bounds to the links' convex pieces' distances (then a skipped pair is one FCL would
+find apart, as with the separating planes).
 
 How far a sphere moves: turning joint i by d rad moves every point downstream by at most
 d * (its distance from joint i's origin), and that distance is at most the sum of the chain's
@@ -83,9 +85,9 @@ def build_self_pair_tables(kin: LinkKinematics, lower_rad: FloatArray, upper_rad
     tables: list[FloatArray] = []
     filled = 0
     for p, (la, lb) in enumerate(self_pairs):
-        chain = _chain(kin, int(kin.link_joint[la]), int(kin.link_joint[lb]))
+        chain = chain_joints(kin, int(kin.link_joint[la]), int(kin.link_joint[lb]))
         if chain is None:
-            chain = _chain(kin, int(kin.link_joint[lb]), int(kin.link_joint[la]))
+            chain = chain_joints(kin, int(kin.link_joint[lb]), int(kin.link_joint[la]))
             la, lb = lb, la
         if chain is None or len(chain) > MAX_CHAIN_JOINTS or any(kin.joint_type[j] != REVOLUTE for j in chain):
             continue
@@ -121,7 +123,7 @@ def _grid_gaps(kin: LinkKinematics, chain: list[int], grids: list[FloatArray], a
     joint is swept: each b sphere becomes the circle it turns on, so the gap holds for any angle
     of that joint."""
     if len(chain) < 3:
-        centers = _points_in_upper_frame(kin, chain, grids, b)  # (G, Sb, 3)
+        centers = points_in_upper_frame(kin, chain, grids, b)  # (G, Sb, 3)
         normals, circle_radii = None, None
     else:
         swept = chain[2]
@@ -130,9 +132,9 @@ def _grid_gaps(kin: LinkKinematics, chain: list[int], grids: list[FloatArray], a
         circle_radii = np.linalg.norm(b - height[:, None] * axis, axis=1)
         # Centers on the axis (where the joint's rotation leaves them), one frame up.
         above = kin.parent_from_joint_rotation[swept]
-        centers = _points_in_upper_frame(kin, chain[:2], grids,
+        centers = points_in_upper_frame(kin, chain[:2], grids,
                                          (height[:, None] * axis) @ above.T + kin.parent_from_joint_translation_m[swept])
-        normals = _points_in_upper_frame(kin, chain[:2], grids, (above @ axis)[None], rotate_only=True)  # (G, 1, 3)
+        normals = points_in_upper_frame(kin, chain[:2], grids, (above @ axis)[None], rotate_only=True)  # (G, 1, 3)
     # |a - c|^2 = |a|^2 + |c|^2 - 2 a.c: matrix products instead of a (G, Sa, Sb, 3) difference
     # array (rounding ~1e-16 m^2, i.e. ~1e-8 m near contact, far inside ROUNDING_GUARD_M).
     a_sq, c_sq = np.einsum("ai,ai->a", a, a), np.einsum("gsi,gsi->gs", centers, centers)
@@ -153,7 +155,7 @@ def _grid_gaps(kin: LinkKinematics, chain: list[int], grids: list[FloatArray], a
     return table
 
 
-def _chain(kin: LinkKinematics, upper: int, lower: int) -> list[int] | None:
+def chain_joints(kin: LinkKinematics, upper: int, lower: int) -> list[int] | None:
     """Joints from below `upper` down to `lower` (inclusive), top first; None when `lower` does
     not hang below (or at) `upper`."""
     chain = []
@@ -166,7 +168,7 @@ def _chain(kin: LinkKinematics, upper: int, lower: int) -> list[int] | None:
     return chain[::-1]
 
 
-def _points_in_upper_frame(kin: LinkKinematics, chain: list[int], grids: list[FloatArray],
+def points_in_upper_frame(kin: LinkKinematics, chain: list[int], grids: list[FloatArray],
                            points: FloatArray, *, rotate_only: bool = False) -> FloatArray:
     """`points` (S, 3) of the chain's last joint frame, in the frame above the chain, at every
     combination of the grid angles (row-major): (G, S, 3). `rotate_only` for directions."""

@@ -274,7 +274,7 @@ def cached_separating_planes(robot: RobotModel, kin: LinkKinematics, centers_lin
     robot has the same), kept in the installed `TableStore` too."""
     # Everything the builder reads: the links' shapes, the kinematics and limits its sampled states use.
     shapes = [robot.link_collision_shapes[link] for link in robot.collision_link_names]
-    key = table_key("separating-planes", robot.collision_link_names, [[_shape_key(s) for s in of_link] for of_link in shapes],
+    key = table_key("separating-planes", robot.collision_link_names, [[shape_key(s) for s in of_link] for of_link in shapes],
                     kin, robot.lower_limits_rad, robot.upper_limits_rad, centers_link, radii_m, link_start, self_pairs)
     per_robot = _planes_of.setdefault(robot, {})
     if key not in per_robot:
@@ -284,10 +284,25 @@ def cached_separating_planes(robot: RobotModel, kin: LinkKinematics, centers_lin
     return per_robot[key]
 
 
-def _shape_key(shape: LinkShape) -> tuple:
+def shape_key(shape: LinkShape) -> tuple:
     """A shape as the builder sees it: its geometry, not the file it came from."""
     return (shape.link, shape.kind, shape.link_from_shape, shape.hull_vertices, shape.hull_triangles, shape.vertices,
             shape.triangles, shape.size_m, shape.radius_m, shape.length_m)
+
+
+def joint_frame_pieces(robot: RobotModel, kin: LinkKinematics) -> list[list[FloatArray]]:
+    """Per collision link, the vertices (N, 3) of the convex pieces the planes are chosen for, in
+    the link's joint frame: the pieces of `link_pieces`, or the whole link when it is one piece."""
+    out = []
+    for li, link in enumerate(robot.collision_link_names):
+        shapes = robot.link_collision_shapes[link]
+        if not shapes:
+            out.append([])
+            continue
+        cut = link_pieces(shapes)
+        sets = [np.vstack([s.hull_vertices for s in shapes])] if len(cut) == 1 else cut
+        out.append([kin_points(kin, li, link_polytope(points)[0]) for points in sets])
+    return out
 
 
 def kin_points(kin: LinkKinematics, link: int, points_link: FloatArray) -> FloatArray:
