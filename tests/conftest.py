@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,8 +16,10 @@ NUMBA_CACHE_DIR = use_numba_cache_dir()
 import numpy as np
 import pytest
 
+from robonav.pipeline.collision.spheres.table_store import use_table_store
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import RobotModel
+from robonav.services.table_cache import DirectoryTableStore
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 """The repository's top folder."""
@@ -28,6 +30,15 @@ PANDA_TEST_CONFIG = RobotConfig(
     # Open fingers (the URDF's 0.04 m limit): closed fingers touch each other.
     fixed_joint_positions={"panda_finger_joint1": 0.04, "panda_finger_joint2": 0.04},
 )
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _shared_tables(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Per-robot tables kept in one folder for the whole run, as `robonav` keeps them for its
+    processes: a robot model built again (every UR5 fixture) reads what the first one built."""
+    previous = use_table_store(DirectoryTableStore(tmp_path_factory.mktemp("tables")))
+    yield
+    use_table_store(previous)
 
 
 @pytest.fixture(scope="session")
