@@ -91,13 +91,13 @@ def test_sphere_first_is_skipped_against_an_occupancy_map(setup) -> None:
 
 def test_sphere_first_is_skipped_when_self_collision_spheres_always_touch(setup) -> None:
     planner, start, goal = setup  # every finger pair checked: their spheres touch in every state...
-    assert planner.world.sphere_self_overflag() < 0.5, "... where separating planes clear them"
-    # Without the planes (a fresh robot: the overflag is measured once per robot) every state is suspect.
+    assert planner.world.sphere_self_overflag() < 0.5, "... where the pieces' gap tables and planes clear them"
+    # Without either (a fresh robot: the overflag is measured once per robot) every state is suspect.
     robot = RobotModel.from_config(planner.robot.config)
     world = CollisionWorld(robot, padding_m=0.01)
     world.set_objects([BLOCK])
     world._broad_phase = SphereBroadPhase(robot, padding_m=0.01, self_pairs=world.self_collision_pairs,
-                                          separating_planes=False)
+                                          self_pair_tables=False, separating_planes=False)
     world._broad_phase.set_objects([BLOCK])
     assert world.sphere_self_overflag() > 0.9
     own = MotionPlanner(robot, world, dataclasses.replace(planner.config, sphere_first_share=1.0))
