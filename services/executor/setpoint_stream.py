@@ -46,8 +46,10 @@ REALTIME_SWITCH_INTERVAL_S = 2e-4
 from the pipe reader within this."""
 DROP_WAIT_US = 50
 """Longest wait for room in Zenoh's transmit queue before a setpoint in motion is dropped [µs]."""
-HEAD_S = 0.25
-"""Trajectories longer than this go over as a head of this length, then the whole [s]."""
+HEAD_S = 1.0
+"""Trajectories longer than this go over as a head of this length, then the whole [s]. The
+executor samples and sends the whole at normal priority: with a quarter second of head, a busy
+2-core machine made it late about once a scene (a UR5 campaign), and the stream braked the arm."""
 START_TIMEOUT_S = 60.0
 """The streaming process must have its Zenoh session up within this [s]."""
 WALL_REFRESH_S = 1.0
@@ -240,6 +242,13 @@ class _Loop:
         from robonav.services.common import to_zenoh_config
 
         spec = self.spec
+        # Every thread of this process runs in the loop's scheduling class, set before the
+        # session opens so that Zenoh's own threads, which write each setpoint to the socket,
+        # inherit it: at normal priority a busy machine held them off for 100-300 ms at a time
+        # while the loop kept handing them setpoints, and the arm's driver braked for want of any.
+        # The reader inherits it too: at normal priority it could be preempted while holding the
+        # GIL, and the real-time loop would wait for it.
+        set_real_time_priority(spec.realtime_priority)
         try:
             zcfg = to_zenoh_config(spec.zenoh)
             # A setpoint in motion that cannot be queued at once is dropped at once: waiting for
@@ -259,9 +268,6 @@ class _Loop:
                                            priority=zenoh.Priority.REAL_TIME, express=True)
         final = session.declare_publisher(spec.key, congestion_control=zenoh.CongestionControl.BLOCK,
                                           priority=zenoh.Priority.REAL_TIME, express=True)
-        # The reader inherits the loop's scheduling class: at normal priority it could be
-        # preempted while holding the GIL, and the real-time loop would wait for it.
-        set_real_time_priority(spec.realtime_priority)
         pin_thread(spec.cpu_affinity)
         reader = threading.Thread(target=self.receive, name="setpoint-stream-reader", daemon=True)
         reader.start()

@@ -7,6 +7,7 @@ import os
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -152,6 +153,44 @@ def test_the_loop_runs_on_the_cpus_it_is_pinned_to() -> None:
                             realtime_priority=0, limits=LIMITS, cpu_affinity=(cpu,))
     try:
         assert handle.pid is not None and os.sched_getaffinity(handle.pid) == {cpu}
+    finally:
+        handle.close()
+        router.close()
+
+
+def _real_time_allowed() -> bool:
+    """Whether this host lets a thread of ours run under SCHED_FIFO (CAP_SYS_NICE or RLIMIT_RTPRIO)."""
+    allowed: list[bool] = []
+
+    def probe() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            allowed.append(True)
+        except (PermissionError, OSError):
+            allowed.append(False)
+
+    thread = threading.Thread(target=probe)  # a thread of its own: the scheduling class ends with it
+    thread.start()
+    thread.join()
+    return allowed[0]
+
+
+def test_zenohs_threads_in_the_stream_run_real_time_as_its_loop_does() -> None:
+    if not hasattr(os, "sched_setscheduler") or not _real_time_allowed():
+        pytest.skip("this host does not allow SCHED_FIFO")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohConfig(mode="router", listen=(endpoint,)))
+    handle = SetpointStream(ZenohConfig(connect=(endpoint,)), KEY, NAMES, rate_hz=1000.0, busy_wait_s=0.0,
+                            realtime_priority=1, limits=LIMITS)
+    try:
+        assert handle.pid is not None
+        names = {int(tid): Path(f"/proc/{handle.pid}/task/{tid}/comm").read_text().strip()
+                 for tid in os.listdir(f"/proc/{handle.pid}/task")}
+        # Zenoh's runtime threads (app-N, net-N, tx-N, rx-N) put each setpoint on the wire.
+        transport = [tid for tid, name in names.items() if name.split("-")[0] in ("app", "net", "tx", "rx")]
+        assert any(names[tid].startswith("tx-") for tid in transport), names
+        assert {tid: os.sched_getscheduler(tid) for tid in transport} == dict.fromkeys(transport, os.SCHED_FIFO)
+        assert os.sched_getscheduler(handle.pid) == os.SCHED_FIFO  # the loop
     finally:
         handle.close()
         router.close()
