@@ -204,6 +204,15 @@ def test_view_draws_what_arrives_thins_clouds_and_survives_bad_samples(endpoint:
                                                 seq=seq).to_wire())
             time.sleep(max(0.0, started + (seq + 1) / 30.0 - time.monotonic()))
         elapsed = time.monotonic() - started
+        # Status and clusters are not latched: put once, they can pass the router before it knows
+        # the view's subscribers (seen on a loaded host). Put again until they are drawn.
+        deadline = time.monotonic() + 10.0
+        while not (node.stats.clusters_drawn and node.client.status is not None) and time.monotonic() < deadline:
+            publisher.put(keys.status, ExecutorStatus(stamp=time.time(), state="executing", trajectory_id="t1",
+                                                      progress=0.25, duration_s=3.0).to_wire())
+            publisher.put(f"{keys.root}/perception/clusters", msgpack.packb(
+                {"v": 1, "clusters": [{"label": "pillar", "center_m": [0.5, 0, 0.45], "size_m": [0.1, 0.1, 0.5]}]}))
+            time.sleep(0.2)
         assert node.wait_until(lambda: (node.stats.paths_drawn and node.stats.maps_drawn and node.stats.clusters_drawn
                                         and node.stats.robot_updates and node.stats.clouds_drawn), 10.0), node.stats
         assert node.stats.clouds_drawn <= 4.0 * elapsed + 2, node.stats
