@@ -242,7 +242,7 @@ class _Loop:
         from robonav.services.common import to_zenoh_config
 
         spec = self.spec
-        # Every thread of this process runs in the loop's scheduling class, set before the
+        # The threads started from here on run in the loop's scheduling class, set before the
         # session opens so that Zenoh's own threads, which write each setpoint to the socket,
         # inherit it: at normal priority a busy machine held them off for 100-300 ms at a time
         # while the loop kept handing them setpoints, and the arm's driver braked for want of any.
