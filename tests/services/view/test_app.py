@@ -190,11 +190,12 @@ def test_view_draws_what_arrives_thins_clouds_and_survives_bad_samples(endpoint:
         centers = np.array([[0.5, 0.0, 0.3], [0.5, 0.0, 0.32]], np.float32)
         declare_latched_publisher(publisher, keys.occupancy).put(Occupancy(
             stamp=time.time(), resolution_m=0.02, octomap_binary=b"", occupied_centers_m=centers).to_wire())
-        publisher.put(keys.status, ExecutorStatus(stamp=time.time(), state="executing", trajectory_id="t1",
-                                                  progress=0.25, duration_s=3.0).to_wire())
-        publisher.put(f"{keys.root}/perception/clusters",
-                      msgpack.packb({"v": 1, "clusters": [{"label": "pillar", "center_m": [0.5, 0, 0.45],
-                                                           "size_m": [0.1, 0.1, 0.5]}]}))
+        status = ExecutorStatus(stamp=time.time(), state="executing", trajectory_id="t1", progress=0.25,
+                                duration_s=3.0).to_wire()
+        clusters = msgpack.packb({"v": 1, "clusters": [{"label": "pillar", "center_m": [0.5, 0, 0.45],
+                                                        "size_m": [0.1, 0.1, 0.5]}]})
+        publisher.put(keys.status, status)
+        publisher.put(f"{keys.root}/perception/clusters", clusters)
         points = synthetic_cloud(camera)
         cloud_key = keys.camera_cloud(camera.camera_id)
         # A 30 Hz camera for one second: the view redraws at most 4 per second.
@@ -208,10 +209,8 @@ def test_view_draws_what_arrives_thins_clouds_and_survives_bad_samples(endpoint:
         # the view's subscribers (seen on a loaded host). Put again until they are drawn.
         deadline = time.monotonic() + 10.0
         while not (node.stats.clusters_drawn and node.client.status is not None) and time.monotonic() < deadline:
-            publisher.put(keys.status, ExecutorStatus(stamp=time.time(), state="executing", trajectory_id="t1",
-                                                      progress=0.25, duration_s=3.0).to_wire())
-            publisher.put(f"{keys.root}/perception/clusters", msgpack.packb(
-                {"v": 1, "clusters": [{"label": "pillar", "center_m": [0.5, 0, 0.45], "size_m": [0.1, 0.1, 0.5]}]}))
+            publisher.put(keys.status, status)
+            publisher.put(f"{keys.root}/perception/clusters", clusters)
             time.sleep(0.2)
         assert node.wait_until(lambda: (node.stats.paths_drawn and node.stats.maps_drawn and node.stats.clusters_drawn
                                         and node.stats.robot_updates and node.stats.clouds_drawn), 10.0), node.stats
