@@ -7,18 +7,23 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # open3d needs libusb at import time; libgomp for its OpenMP kernels.
 DEB_PACKAGES := libusb-1.0-0 libgomp1
-# The browser test of `robonav view` drives Debian's chromium (Playwright cannot download its own offline).
-test: DEB_PACKAGES += chromium
+# The browser tests of `robonav view` drive Debian's chromium (Playwright cannot download its own offline).
+e2e: DEB_PACKAGES += chromium
 
-.PHONY: demo test setup system-deps precompile clean
+.PHONY: demo test e2e setup system-deps precompile clean
 
 demo: setup
 	mkdir -p out
 	$(VENV)/bin/robonav demo --seed 0 --json out/demo-summary.json
 
+# `make test` runs every test but the end-to-end ones (marked e2e: the whole stack, a browser,
+# a campaign); `make e2e` runs those, and CI runs both (`.ci/run`). Plain `pytest` runs all.
 test: setup
 	$(VENV)/bin/ruff check pipeline services calibration tests examples
-	$(PY) -m pytest
+	$(PY) -m pytest -m "not e2e"
+
+e2e: setup
+	$(PY) -m pytest -m e2e
 
 setup: system-deps $(STAMP) precompile
 

@@ -52,6 +52,7 @@ def test_help_prints_no_banner() -> None:
         assert _foreign_lines(done.stderr) == [], (args, done.stderr)
 
 
+@pytest.mark.e2e
 def test_a_stack_start_and_stop_logs_only_records_of_its_own(tmp_path: Path) -> None:
     config = write_config(tmp_path, "quiet.yaml", zenoh={"connect": [f"tcp/127.0.0.1:{free_port()}"]},
                           sim={"follow": "kinematic"}, cameras={"width": 160, "height": 120})

@@ -8,6 +8,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.e2e
+
 
 def test_the_executor_bench_reports_periods_ratios_and_the_perception_load(tmp_path: Path) -> None:
     out = tmp_path / "executor.json"

@@ -7,8 +7,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from robonav.services.bench.faults.run import KILLABLE
 from robonav.services.cli import main as cli_main
+
+pytestmark = pytest.mark.e2e
 
 
 def test_the_stack_comes_out_of_kills_unsafe_commands_and_fuzz(tmp_path: Path) -> None:

@@ -7,6 +7,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.e2e
+
 
 def test_bench_perception_writes_stage_latency_and_rate_figures(tmp_path: Path) -> None:
     out = tmp_path / "perception.json"

@@ -20,6 +20,8 @@ from robonav.services.stack.robot_cell import read_robot
 
 from ..conftest import free_port, write_config, write_turn_lift_reach
 
+pytestmark = pytest.mark.e2e
+
 REQUIRED_FIELDS = ("scenes", "goals", "goals_reached", "goals_unreachable", "contacts", "limit_violations",
                    "min_clearance_m", "padding_m", "planning_ms", "replans", "perception_latency_ms")
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.model import RobotModel
@@ -31,6 +32,8 @@ from robonav.services.config import load_config
 from robonav.services.planner.scene_specs import object_spec
 
 from ..conftest import plan_and_execute
+
+pytestmark = pytest.mark.e2e
 
 DEFAULT = load_config()
 # The base swings the arm, hand high and out, from one side of the table to the other: long

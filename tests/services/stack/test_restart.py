@@ -47,6 +47,8 @@ from robonav.services.stack.up import Stack
 
 from ..conftest import free_port, plan_and_execute, write_config
 
+pytestmark = pytest.mark.e2e
+
 START_TIMEOUT_S = 120.0
 BACK_TIMEOUT_S = 60.0
 """Generous for a loaded machine; the measured times are printed."""

@@ -26,6 +26,8 @@ from ..conftest import TURN_LIFT_REACH_ROBOT_FILE as ROBOT_FILE
 from ..conftest import free_port, write_turn_lift_reach
 from ..conftest import write_config as write_test_config
 
+pytestmark = pytest.mark.e2e
+
 
 @pytest.fixture()
 def robot_file(tmp_path: Path) -> Path:

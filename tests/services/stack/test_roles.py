@@ -40,7 +40,7 @@ from robonav.services.stack.roles import (
 from ..conftest import write_config
 from .secure_cell import DEV_ENV, make_cell_dir, router, running, session
 
-pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="gen_certs.sh needs the openssl command")
+pytestmark = [pytest.mark.e2e, pytest.mark.skipif(shutil.which("openssl") is None, reason="gen_certs.sh needs the openssl command")]
 
 
 @pytest.fixture(scope="module")

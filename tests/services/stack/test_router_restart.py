@@ -36,6 +36,8 @@ from robonav.services.config import ZenohConfig
 
 from ..conftest import free_port
 
+pytestmark = pytest.mark.e2e
+
 RECOVERY_LIMIT_S = 10.0
 ROUTER_START_TIMEOUT_S = 30.0
 

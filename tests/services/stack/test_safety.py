@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.model import RobotModel
@@ -22,6 +23,8 @@ from robonav.pipeline.wire.messages import (
 )
 from robonav.services.client import RobonavClient
 from robonav.services.config import load_config
+
+pytestmark = pytest.mark.e2e
 
 DEFAULT = load_config()
 GOALS = [np.array(g) for g in DEFAULT.demo.goals_rad]

@@ -40,6 +40,8 @@ from robonav.services.tools import plan as plan_cli
 
 from ..conftest import free_port, write_config
 
+pytestmark = pytest.mark.e2e
+
 START_TIMEOUT_S = 90.0
 HOME = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
 GOAL = [0.487, -0.233, -0.041, -2.359, -0.011, 2.127, -0.332]

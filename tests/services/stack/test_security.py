@@ -31,7 +31,7 @@ from .secure_cell import SECURITY_DIR, START_TIMEOUT_S, make_cell_dir, refused, 
 
 REQUEST_LIMIT_BYTES = 64 * 1024
 
-pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="gen_certs.sh needs the openssl command")
+pytestmark = [pytest.mark.e2e, pytest.mark.skipif(shutil.which("openssl") is None, reason="gen_certs.sh needs the openssl command")]
 
 
 @pytest.fixture(scope="module")

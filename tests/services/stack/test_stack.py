@@ -27,6 +27,8 @@ from robonav.services.config import load_config
 
 from ...conftest import REPO_ROOT
 
+pytestmark = pytest.mark.e2e
+
 REPO = REPO_ROOT
 DEFAULT = load_config()
 GOALS = [np.array(g) for g in DEFAULT.demo.goals_rad]

@@ -56,8 +56,8 @@ from ...conftest import REPO_ROOT  # noqa: E402
 from ..conftest import free_port, write_config  # noqa: E402
 from .conftest import project  # noqa: E402
 
-pytestmark = pytest.mark.skipif(find_chromium() is None,
-                                reason="Debian's chromium is not installed (`make test` installs it)")
+pytestmark = [pytest.mark.e2e, pytest.mark.skipif(find_chromium() is None,
+                               reason="Debian's chromium is not installed (`make e2e` installs it)")]
 
 VIEW_START_TIMEOUT_S = 60.0
 WIDTH, HEIGHT = 800, 480
