@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# End-to-end test of the container stack, run by CI after `make test`:
+# End-to-end test of the container stack, run by CI after `make test` and `make e2e`:
 #   build the image (offline; a local base image when no registry answers), bring the compose
 #   stack up on a free port, wait until every container is healthy, plan and execute a motion
 #   from the host, scale the planners to 2, race them, kill one planner process and plan again,
