@@ -211,6 +211,7 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
         "perception_latency_ms": _percentiles([s * 1e3 for s in monitors.perception_latency_s], 1),
         "replans": sum(g["replans"] for g in goals), "guard_stops": sum(g["guard_stops"] for g in goals),
         "executor_stops": sum(g.get("executor_stops", 0) for g in goals),
+        "executor_faults": _count([code for g in goals for code in g.get("executor_faults", [])]),
         "executor_stop_after_frame_ms": _percentiles([s * 1e3 for g in goals for s in g.get("executor_stop_after_frame_s", [])], 1),
         "intruder_rest_to_executor_stop_ms": _percentiles(
             [g["executor_stop_after_rest_s"] * 1e3 for g in goals if g.get("executor_stop_after_rest_s") is not None], 1),
@@ -227,6 +228,11 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
                           "dropped_time_s": round(sim_stats.dropped_time_s, 3),
                           "joint_state_period_ms_max": round(sim_stats.joint_state_period_ms_max, 2),
                           "render_ms_p50": {c.camera_id: round(c.render_ms_p50, 1) for c in sim_stats.cameras}}
+        # The arm's own rules (`pipeline/sim/driver.py`): setpoints it refused and brakes it made.
+        # Counted since the sim started (a stats reset leaves them); None from a sim that does not report them.
+        summary["sim"] |= {"setpoints_followed": sim_stats.setpoints_followed,
+                           "setpoints_rejected": sim_stats.setpoints_rejected,
+                           "setpoint_timeouts": sim_stats.setpoint_timeouts, "brakes": sim_stats.brakes}
     summary["per_scene"] = scenes
     return summary
 
@@ -257,11 +263,22 @@ def table(summary: dict[str, Any]) -> str:
          f"{summary['replans']} ({summary['guard_stops']}, {summary.get('executor_stops', 0)})"),
         ("executor stop after frame ms p50 / p95", f"{summary.get('executor_stop_after_frame_ms', {}).get('p50')} / "
                                                    f"{summary.get('executor_stop_after_frame_ms', {}).get('p95')}"),
+        ("executor watchdog stops", ", ".join(f"{code} {n}" for code, n in summary.get("executor_faults", {}).items())
+                                    or "0"),
+        ("arm: rejected setpoints / timeouts / brakes", _driver_row(summary.get("sim", {}))),
         ("wall time", f"{summary['wall_time_s']} s ({summary['scenes_per_hour']} scenes/h)"),
         ("scenes failed / arm resets", f"{summary.get('scenes_failed', 0)} / {summary.get('resets', 0)}"),
     ]
     width = max(len(name) for name, _ in rows)
     return "\n".join(f"{name:<{width}}  {value}" for name, value in rows)
+
+
+def _driver_row(sim: dict[str, Any]) -> str:
+    rejected = sim.get("setpoints_rejected")
+    if rejected is None:
+        return "not reported"
+    reasons = ", ".join(f"{reason} {n}" for reason, n in rejected.items() if n)
+    return f"{sum(rejected.values())}{f' ({reasons})' if reasons else ''} / {sim.get('setpoint_timeouts')} / {sim.get('brakes')}"
 
 
 def run_campaign(args: argparse.Namespace, cfg: RobonavConfig, config_path: Path, scenes: list[Scene]) -> dict[str, Any]:

@@ -86,6 +86,9 @@ class GoalRecord:
     executor_stop_after_rest_s: float | None = None
     """Intruder goals: from the box coming to rest to the executor's stop command [s] (at most
     one frame period more than from the first frame that shows it at rest)."""
+    executor_faults: list[str] = field(default_factory=list)
+    """Error codes of the motions the executor's watchdog stopped (TRACKING_ERROR: the arm fell
+    behind its setpoints; JOINT_STATE_STALE), one per stopped motion."""
     reached: bool = False
     result: str = ""
     replans: int = 0
@@ -427,6 +430,9 @@ class SceneRunner:
             if finished():
                 status = self.client.status
                 assert status is not None
+                if status.state is ExecutionState.ERROR and status.error_code \
+                        and status.error_code != ErrorCode.PATH_BLOCKED:
+                    record.executor_faults.append(status.error_code)
                 if status.state is ExecutionState.ERROR and status.error_code == ErrorCode.PATH_BLOCKED:
                     record.executor_stops += 1
                     if status.blocked_after_frame_s is not None:

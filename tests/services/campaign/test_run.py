@@ -14,13 +14,13 @@ import yaml
 
 from robonav.pipeline.config import ConfigError
 from robonav.pipeline.robot.model import RobotModel
+from robonav.pipeline.sim.driver import REJECTION_REASONS
+from robonav.pipeline.wire.messages import SimStatsResponse
 from robonav.services.campaign.run import campaign_config, load_scenes, moving_scene_indices, parse_args, summarize, table
 from robonav.services.config import load_config
 from robonav.services.stack.robot_cell import read_robot
 
 from ..conftest import free_port, write_config, write_turn_lift_reach
-
-pytestmark = pytest.mark.e2e
 
 REQUIRED_FIELDS = ("scenes", "goals", "goals_reached", "goals_unreachable", "contacts", "limit_violations",
                    "min_clearance_m", "padding_m", "planning_ms", "replans", "perception_latency_ms")
@@ -63,7 +63,7 @@ def test_the_summary_counts_feasible_goals_contacts_and_clearance() -> None:
     def goal(reached: bool, feasible: bool, moving: bool = False) -> dict:
         return {"reached": reached, "feasible": feasible, "moving": moving, "detour": True, "replans": 1,
                 "guard_stops": 0, "planning_ms": [10.0, 30.0], "errors": ["plan:NO_SOLUTION"],
-                "plan_true_clearance_m": 0.05, "intruder": moving}
+                "plan_true_clearance_m": 0.05, "intruder": moving, "executor_faults": ["TRACKING_ERROR"]}
 
     scenes = [
         {"index": 0, "scene": "a", "moving": False, "contacts": 0, "min_distance_m": 0.04, "min_distance_pair": "x|y",
@@ -72,7 +72,11 @@ def test_the_summary_counts_feasible_goals_contacts_and_clearance() -> None:
          "goals": [goal(False, True, moving=True) | {"plans_through_box": [{"start_clearance_m": 0.02}]}]},
     ]
     args = argparse.Namespace(seed=1, source="clutter", no_noise=False, no_guard=False, moving_speed=0.5)
-    summary = summarize(scenes, Monitors(), load_config(), args, 60.0, None)  # type: ignore[arg-type]
+    sim_stats = SimStatsResponse(wall_time_s=60.0, sim_time_s=59.0, real_time_factor=0.98, steps=59000,
+                                 step_lateness_ms_p50=0.2, step_lateness_ms_p99=5.0, step_lateness_ms_max=40.0,
+                                 setpoints_followed=9000, setpoints_rejected={"jump": 2, "velocity": 0},
+                                 setpoint_timeouts=1, brakes=3)
+    summary = summarize(scenes, Monitors(), load_config(), args, 60.0, sim_stats)  # type: ignore[arg-type]
     assert set(REQUIRED_FIELDS) <= set(summary)
     assert (summary["goals"], summary["goals_feasible"], summary["goals_reached"], summary["goals_unreachable"]) == (3, 1, 1, 1)
     assert summary["reached_of_feasible"] == 1.0  # the moving goal is judged on safety, not reach
@@ -81,6 +85,12 @@ def test_the_summary_counts_feasible_goals_contacts_and_clearance() -> None:
     assert summary["planning_ms"]["p50"] == 20.0 and summary["replans"] == 3
     assert (summary["intruders"], summary["moving_speed_factor"], summary["plans_through_box"]) == (1, 0.5, 1)
     assert "reached (of feasible)" in table(summary) and "2 (1 / 1)" in table(summary)
+    # Why motions stopped on their own: the executor's watchdog, the arm's refusals and brakes.
+    assert summary["executor_faults"] == {"TRACKING_ERROR": 3}
+    assert summary["sim"]["setpoints_rejected"] == {"jump": 2, "velocity": 0}
+    assert (summary["sim"]["setpoint_timeouts"], summary["sim"]["brakes"]) == (1, 3)
+    assert "TRACKING_ERROR 3" in table(summary) and "2 (jump 2) / 1 / 3" in table(summary)
+    assert "not reported" in table(summarize(scenes, Monitors(), load_config(), args, 60.0, None))  # type: ignore[arg-type]
 
 
 @pytest.fixture(scope="module")
@@ -105,18 +115,23 @@ def campaign_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, dict, s
     return run.returncode, json.loads(out.read_text(encoding="utf-8")), run.stdout + run.stderr
 
 
+@pytest.mark.e2e
 def test_a_ten_scene_campaign_reports_every_field(campaign_run: tuple[int, dict, str]) -> None:
     code, summary, output = campaign_run
     assert set(REQUIRED_FIELDS) <= set(summary)
     assert summary["scenes"] == 10 and summary["goals"] == 10 and summary["noise"] is True
     assert summary["moving_scenes"] == 1 and len(summary["per_scene"]) == 10
     assert summary["setpoints_checked"] > 0 and summary["planning_ms"]["p50"] is not None
+    # The arm's own counters come from the live sim: it followed the campaign's setpoints.
+    assert summary["sim"]["setpoints_followed"] > 0 and set(summary["sim"]["setpoints_rejected"]) == set(REJECTION_REASONS)
+    assert isinstance(summary["executor_faults"], dict) and "executor watchdog stops" in output
     assert "campaign: 100%" in output  # the progress bar ran to the end
     assert "reached (of feasible)" in output  # the table
     assert code == (0 if summary["contacts"] == 0 and summary["limit_violations"] == 0 else 1)
     assert summary["service_exit_codes"] == {"router": 0, "sim": 0, "perception": 0, "planner": 0, "executor": 0}
 
 
+@pytest.mark.e2e
 def test_a_ten_scene_campaign_is_safe_in_static_scenes(campaign_run: tuple[int, dict, str]) -> None:
     _, summary, _ = campaign_run
     assert summary["limit_violations"] == 0, summary["limit_violation_examples"]
@@ -129,6 +144,7 @@ def test_a_ten_scene_campaign_is_safe_in_static_scenes(campaign_run: tuple[int, 
     assert sum(g["reached"] for g in feasible) >= 0.8 * len(feasible), [g for g in feasible if not g["reached"]]
 
 
+@pytest.mark.e2e
 def test_a_campaign_runs_another_robot_with_goals_drawn_for_its_joints(tmp_path: Path) -> None:
     """The cylindrical test robot (a continuous joint, two prismatic ones), one scene, two goals:
     its own cell and goals, nothing touched, no setpoint beyond its limits."""
