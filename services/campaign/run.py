@@ -227,12 +227,12 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
                                                "max": round(sim_stats.step_lateness_ms_max, 3)},
                           "dropped_time_s": round(sim_stats.dropped_time_s, 3),
                           "joint_state_period_ms_max": round(sim_stats.joint_state_period_ms_max, 2),
-                          "render_ms_p50": {c.camera_id: round(c.render_ms_p50, 1) for c in sim_stats.cameras}}
-        # The arm's own rules (`pipeline/sim/driver.py`): setpoints it refused and brakes it made.
-        # Counted since the sim started (a stats reset leaves them); None from a sim that does not report them.
-        summary["sim"] |= {"setpoints_followed": sim_stats.setpoints_followed,
-                           "setpoints_rejected": sim_stats.setpoints_rejected,
-                           "setpoint_timeouts": sim_stats.setpoint_timeouts, "brakes": sim_stats.brakes}
+                          "render_ms_p50": {c.camera_id: round(c.render_ms_p50, 1) for c in sim_stats.cameras},
+                          # The arm's own rules (`pipeline/sim/driver.py`), counted since the sim started (a
+                          # stats reset leaves them); None from a sim that does not report them.
+                          "setpoints_followed": sim_stats.setpoints_followed,
+                          "setpoints_rejected": sim_stats.setpoints_rejected,
+                          "setpoint_timeouts": sim_stats.setpoint_timeouts, "brakes": sim_stats.brakes}
     summary["per_scene"] = scenes
     return summary
 

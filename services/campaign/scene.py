@@ -430,15 +430,14 @@ class SceneRunner:
             if finished():
                 status = self.client.status
                 assert status is not None
-                if status.state is ExecutionState.ERROR and status.error_code \
-                        and status.error_code != ErrorCode.PATH_BLOCKED:
-                    record.executor_faults.append(status.error_code)
                 if status.state is ExecutionState.ERROR and status.error_code == ErrorCode.PATH_BLOCKED:
                     record.executor_stops += 1
                     if status.blocked_after_frame_s is not None:
                         record.executor_stop_after_frame_s.append(round(status.blocked_after_frame_s, 3))
                     if record.intruder and record.executor_stop_after_rest_s is None and status.blocked_stamp:
                         record.executor_stop_after_rest_s = round(status.blocked_stamp - self._intruder_rest_at, 3)
+                elif status.state is ExecutionState.ERROR and status.error_code:
+                    record.executor_faults.append(status.error_code)
                 return trajectory_outcome(status)
             occupancy = self.client.occupancy
             if occupancy is None or occupancy.seq == seen_seq:
