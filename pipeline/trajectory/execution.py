@@ -112,6 +112,12 @@ class ExecutionStateMachine:
             return None
         return self._trajectory.sample(now_s - self._started_at_s)
 
+    def delay(self, delay_s: float) -> None:
+        """What streams plays `delay_s` later than it was started at: the robot side started it
+        late (a motion from rest that reached the setpoint loop after its start plays from its
+        first row). Commanded states, stops and status follow from now on."""
+        self._started_at_s += delay_s
+
     def start(self, trajectory: JointTrajectory, trajectory_id: str, now_s: float, *, replanned: bool = False) -> bool:
         """Stream `trajectory` from `now_s`; while moving, blend into it from the commanded state.
 

@@ -349,6 +349,7 @@ def period_errors(cfg: RobonavConfig, robot: RobotModel, seconds: float, seed: i
             "max": float(error_ms.max()), "missed": int(np.sum(periods > 2 * nominal_s)),
             "max_at_s": float(times[int(np.argmax(error_ms))] - times[0]),
             "late_tables": len(stream.late_s), "late_ms": [round(x * 1e3, 1) for x in stream.late_s],
+            "delayed_starts": len(stream.delayed_s), "delayed_ms": [round(x * 1e3, 1) for x in stream.delayed_s],
             "starved": stream.starved,
             "mean_period_ms": float(periods.mean() * 1e3)}
 
@@ -414,6 +415,7 @@ def main(args: argparse.Namespace) -> int:
               "setpoints": periods["setpoints"], "executes": periods["executes"], "max_at_s": periods["max_at_s"],
               "mean_period_ms": periods["mean_period_ms"],
               "late_tables": periods["late_tables"], "late_ms": periods["late_ms"], "starved": periods["starved"],
+              "delayed_starts": periods["delayed_starts"], "delayed_ms": periods["delayed_ms"],
               "perception_hz": args.perception_hz, "perception_maps_hz": periods["perception_maps_hz"],
               "drop_stop": _drop_summary(periods), "reference_loop": periods["reference_loop"],
               "duration_ratio_vs_toppra": ratios,
@@ -436,7 +438,9 @@ def main(args: argparse.Namespace) -> int:
               f"{shared['reference_period_error_ms']['p99']:.3f} max {shared['reference_period_error_ms']['max']:.3f} ms; "
               f"stream misses while the reference missed too: {shared['shared']} of {shared['stream_missed']}")
     print(f"trajectories handed to the stream after their start time: {periods['late_tables']} "
-          f"(late by [ms]: {periods['late_ms'][:20]}); braked for want of the rest of one: {periods['starved']}")
+          f"(late by [ms]: {periods['late_ms'][:20]}); braked for want of the rest of one: {periods['starved']}; "
+          f"motions from rest started late, from their first row: {periods['delayed_starts']} "
+          f"(by [ms]: {periods['delayed_ms'][:20]})")
     print(f"duration vs TOPP-RA over {ratios['paths']} paths: median {ratios['median']:.3f}  max {ratios['max']:.3f}  "
           f"min {ratios['min']:.3f}  (our max deviation {ratios['max_path_deviation_rad']:.4f} rad)")
     if args.json is not None:

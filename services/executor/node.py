@@ -96,7 +96,9 @@ class ExecutorNode(Node):
                                       realtime_priority=cfg.executor.realtime_priority, limits=limits,
                                       keep_times=keep_stream_times, cpu_affinity=cfg.executor.cpu_affinity)
         self._streamed_revision = 0
-        self._to_stream: queue.SimpleQueue[tuple[JointTrajectory | None, float, str] | None] = queue.SimpleQueue()
+        self._stream_delay_ticks = 0
+        """The stream's `delay_ticks` as the machine's clock has taken it up."""
+        self._to_stream: queue.SimpleQueue[tuple[JointTrajectory | None, float, str, int] | None] = queue.SimpleQueue()
         self._feeder = threading.Thread(target=self._feed_stream, name="executor-stream-feeder", daemon=True)
         self._feeder.start()
         # Status must arrive: a lost one could leave a client waiting for a state it missed.
@@ -241,15 +243,27 @@ class ExecutorNode(Node):
     # --- handing trajectories to the setpoint stream ----------------------------------------
 
     def _switch_time(self) -> float:
-        """When a trajectory started now takes over: the stream's first tick after the lead that
-        sampling it and handing it over needs."""
+        """Under `_lock`: when a trajectory started now takes over, the stream's first tick after
+        the lead that sampling it and handing it over needs.
+
+        It first takes up a delay the stream added (a motion from rest that reached it late
+        plays from its first row, later): the machine's clock moves with it, so every blend,
+        stop and status after this one starts from what the stream really plays."""
+        delay_ticks = self._stream.delay_ticks
+        if delay_ticks != self._stream_delay_ticks:
+            delay_s = (delay_ticks - self._stream_delay_ticks) * self._stream.period_s
+            self.machine.delay(delay_s)
+            self._stream_delay_ticks = delay_ticks
+            log.info("'%s' reached the setpoint stream late and plays %.1f ms later than planned",
+                     self.machine.trajectory_id, delay_s * 1e3)
         return self._stream.next_tick(time.monotonic() + self.cfg.executor.command_lead_s)
 
     def _stream_latest(self) -> None:
         """Under `_lock`, after any call that may have replaced the machine's trajectory."""
         if self.machine.revision != self._streamed_revision:
             self._streamed_revision = self.machine.revision
-            self._to_stream.put((self.machine.trajectory, self.machine.started_at_s, self.machine.trajectory_id))
+            self._to_stream.put((self.machine.trajectory, self.machine.started_at_s, self.machine.trajectory_id,
+                                 self._stream_delay_ticks))
 
     def _feed_stream(self) -> None:
         """Sample each new trajectory on the stream's grid and send it, in order.
@@ -257,9 +271,9 @@ class ExecutorNode(Node):
         None of them is skipped, not even the older of two quick ones: the newer was computed from the older's
         commanded state, so the stream must play the older until the newer takes over."""
         while (item := self._to_stream.get()) is not None:
-            trajectory, start_s, trajectory_id = item
+            trajectory, start_s, trajectory_id, known_delay_ticks = item
             if trajectory is not None:
-                self._stream.play(trajectory, trajectory_id, start_s)
+                self._stream.play(trajectory, trajectory_id, start_s, known_delay_ticks)
 
     def stream_stats(self) -> StreamStats:
         """The setpoint stream's counters (and publish times when kept)."""

@@ -12,6 +12,16 @@ trajectories go over in two parts: a head of `HEAD_S` first (fast to sample and 
 on time), then the whole table, which replaces the head where it plays. A stream that runs out
 of a head before the rest arrives brakes the arm from there, as when the executor is gone.
 
+A table that reaches the loop after its start takes over at the current tick, its earlier rows
+skipped: right for a preemption, which must switch when the executor's blend says. A motion
+from rest (nothing playing, the table's first row at rest) is instead played from its first
+row at once: skipped rows would make the arm's first setpoint one already in motion, which a
+driver refuses (Franka's FCI, the sim's) while the arm stays put, until the executor's tracking
+watchdog stops the motion. The loop then plays that table, and every table the executor sent
+before it knew, that much later: it adds the delay to a counter it shares with the executor
+(`delay_ticks`), each table goes over with the counter's value the executor had taken up when
+it computed it, and the executor moves its state machine's clock by each increase.
+
 If the executor's process goes away (the pipe closes) or the stream is closed while a table is
 playing, the loop brakes the arm from its last row as fast as the robot's limits allow, plays
 that to rest, and exits.
@@ -50,6 +60,8 @@ HEAD_S = 1.0
 """Trajectories longer than this go over as a head of this length, then the whole [s]. The
 executor samples and sends the whole at normal priority: with a quarter second of head, a busy
 2-core machine made it late about once a scene (a UR5 campaign), and the stream braked the arm."""
+AT_REST = 1e-9
+"""A table whose first row's velocity [rad/s] and acceleration [rad/s^2] are below this starts at rest."""
 START_TIMEOUT_S = 60.0
 """The streaming process must have its Zenoh session up within this [s]."""
 WALL_REFRESH_S = 1.0
@@ -63,6 +75,9 @@ class StreamStats:
     late_s: tuple[float, ...]
     """For each table that arrived after its first row was due (the switch then skipped rows):
     how late [s]."""
+    delayed_s: tuple[float, ...]
+    """For each motion from rest that arrived after its first row was due (it played from its
+    first row that much later, and so did what the executor sent before it knew): how late [s]."""
     starved: int
     """Heads played to their end before the rest of their trajectory arrived (the arm was braked)."""
     publish_times_s: FloatArray
@@ -118,7 +133,10 @@ class SetpointStream:
         context = multiprocessing.get_context("spawn")  # never fork a process with Zenoh's threads
         self._conn, child = context.Pipe()
         self._send_lock = threading.Lock()
-        self._process = context.Process(target=_run, args=(spec, child), name="robonav-setpoint-stream", daemon=True)
+        # Written by the loop alone; a 64-bit integer is read whole.
+        self._delay_ticks = context.RawValue("q", 0)
+        self._process = context.Process(target=_run, args=(spec, child, self._delay_ticks),
+                                        name="robonav-setpoint-stream", daemon=True)
         self._process.start()
         child.close()
         try:
@@ -138,17 +156,29 @@ class SetpointStream:
         """The first tick of the stream's grid at or after time.monotonic() `t_s` [s]."""
         return self.origin_s + math.ceil((t_s - self.origin_s) / self.period_s - 1e-9) * self.period_s
 
-    def send(self, table: SetpointTable) -> None:
-        """Play `table` from its start time on (replacing whatever plays then)."""
-        with self._send_lock:
-            self._conn.send(("table", table))
+    @property
+    def delay_ticks(self) -> int:
+        """Periods by which the loop has put off motions from rest that reached it late, in all
+        (see the module's docstring); only ever grows."""
+        return int(self._delay_ticks.value)
 
-    def play(self, trajectory: JointTrajectory, trajectory_id: str, start_s: float) -> None:
+    def send(self, table: SetpointTable, known_delay_ticks: int = 0) -> None:
+        """Play `table` from its start time on (replacing whatever plays then).
+
+        Args:
+            table: The table; its start is on the stream's grid.
+            known_delay_ticks: `delay_ticks` as the sender knew it when it computed the table:
+                the loop plays it `delay_ticks - known_delay_ticks` periods after its start.
+        """
+        with self._send_lock:
+            self._conn.send(("table", (table, int(known_delay_ticks))))
+
+    def play(self, trajectory: JointTrajectory, trajectory_id: str, start_s: float, known_delay_ticks: int = 0) -> None:
         """Sample `trajectory` from `start_s` (on the grid) and send it: its head first when long."""
         head = sample_table(trajectory, trajectory_id, start_s, self.period_s, max_rows=int(HEAD_S / self.period_s))
-        self.send(head)
+        self.send(head, known_delay_ticks)
         if not head.complete:
-            self.send(sample_table(trajectory, trajectory_id, start_s, self.period_s))
+            self.send(sample_table(trajectory, trajectory_id, start_s, self.period_s), known_delay_ticks)
 
     def stats(self, timeout_s: float = 10.0) -> StreamStats:
         with self._send_lock:
@@ -179,16 +209,19 @@ class SetpointStream:
 
 
 class _Loop:
-    def __init__(self, spec: _StreamSpec, conn: Any) -> None:  # noqa: ANN401 - a multiprocessing Connection
+    def __init__(self, spec: _StreamSpec, conn: Any, delay_ticks: Any) -> None:  # noqa: ANN401 - a Connection, a RawValue
         self.spec = spec
         self.conn = conn
+        self.delay_ticks = delay_ticks
         self.lock = threading.Lock()
-        self.pending: list[SetpointTable] = []
+        self.pending: list[tuple[SetpointTable, int]] = []
+        """Tables not yet played, in the order sent, each with the delay its sender knew."""
         self.closing = threading.Event()
         self.stats_asked = threading.Event()
         self.times = np.zeros(spec.keep_times)
         self.published = 0
         self.late_s: list[float] = []
+        self.delayed_s: list[float] = []
         self.starved = 0
 
     def receive(self) -> None:
@@ -211,29 +244,45 @@ class _Loop:
 
     def take(self, tick_s: float, active: SetpointTable | None) -> SetpointTable | None:
         """The table that plays at `tick_s`: the newest pending one already due (the last sent
-        of those with the latest start), else `active`."""
+        of those with the latest start), else `active`. Starts are as played: moved by the delay
+        the sender did not know of yet."""
+        period = self.spec.period_s
         with self.lock:
-            due = [t for t in self.pending if t.start_s <= tick_s + 1e-6]
+            delay = int(self.delay_ticks.value)
+            pending = [(dataclasses.replace(table, start_s=table.start_s + (delay - known) * period)
+                        if known != delay else table) for table, known in self.pending]
+            due = [i for i, table in enumerate(pending) if table.start_s <= tick_s + 1e-6]
             if not due:
                 return active
-            self.pending = [t for t in self.pending if t.start_s > tick_s + 1e-6]
-        table = due[0]
-        for candidate in due[1:]:
-            if candidate.start_s >= table.start_s:
+            self.pending = [entry for i, entry in enumerate(self.pending) if i not in due]
+        table = pending[due[0]]
+        for candidate in (pending[i] for i in due[1:]):
+            if candidate.start_s >= table.start_s - 1e-9:
                 table = candidate
-        if active is not None and table.start_s < active.start_s:
+        if active is not None and table.start_s < active.start_s - 1e-9:
             return active  # overtaken (e.g. by a brake): never go back to an older start
-        rest_of_active = (active is not None and not active.complete and table.start_s == active.start_s
+        rest_of_active = (active is not None and not active.complete and abs(table.start_s - active.start_s) < 1e-9
                           and table.trajectory_id == active.trajectory_id)
         late_s = tick_s - table.start_s
-        if late_s > 0.5 * self.spec.period_s and not rest_of_active:
-            self.late_s.append(late_s)
+        if late_s <= 0.5 * period or rest_of_active:
+            return table
+        if active is None and max(np.abs(table.velocity[0]).max(), np.abs(table.acceleration[0]).max()) < AT_REST:
+            ticks = int(round(late_s / period))
+            self.delay_ticks.value = delay + ticks
+            self.delayed_s.append(late_s)
+            log.warning("setpoint stream: '%s', a motion from rest, arrived %.1f ms after its start: it starts now, "
+                        "from its first row", table.trajectory_id, late_s * 1e3)
+            return dataclasses.replace(table, start_s=table.start_s + ticks * period)
+        self.late_s.append(late_s)
+        log.warning("setpoint stream: '%s' arrived %.1f ms after its start: it takes over %d rows in",
+                    table.trajectory_id, late_s * 1e3, int(round(late_s / period)))
         return table
 
     def answer_stats(self) -> None:
         self.stats_asked.clear()
         kept = min(self.published, len(self.times))
-        self.conn.send(StreamStats(self.published, tuple(self.late_s), self.starved, self.times[:kept].copy()))
+        self.conn.send(StreamStats(self.published, tuple(self.late_s), tuple(self.delayed_s), self.starved,
+                                   self.times[:kept].copy()))
 
     def run(self) -> None:
         import zenoh
@@ -365,12 +414,12 @@ def wall_from_monotonic(tries: int = 5) -> float:
     return best
 
 
-def _run(spec: _StreamSpec, conn: Any) -> None:  # noqa: ANN401 - a multiprocessing Connection
+def _run(spec: _StreamSpec, conn: Any, delay_ticks: Any) -> None:  # noqa: ANN401 - a Connection, a RawValue
     """Process body."""
     log_format = os.environ.get(LOG_FORMAT_ENV, "text")  # the parent's --log-format (setup_logging set it)
     setup_logging(logging.getLevelName(spec.log_level), log_format if log_format in LOG_FORMATS else "text")
     sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
-    _Loop(spec, conn).run()
+    _Loop(spec, conn, delay_ticks).run()
 
 
 def pin_thread(cpus: tuple[int, ...]) -> None:

@@ -115,6 +115,25 @@ def test_preemption_blends_from_the_commanded_state() -> None:
     np.testing.assert_array_equal(samples[-1].position, new_path[-1])
 
 
+def test_a_delayed_start_moves_the_machines_clock_with_it() -> None:
+    machine = ExecutionStateMachine(LIMITS)
+    trajectory = _trajectory()
+    machine.start(trajectory, "late", now_s=10.0)
+    machine.delay(0.25)
+    assert machine.started_at_s == 10.25
+    for t in (0.0, 0.3 * trajectory.duration_s, 0.7 * trajectory.duration_s):
+        commanded = machine.commanded_state(10.25 + t)
+        assert commanded is not None
+        for got, want in zip(commanded, trajectory.sample(t)):
+            np.testing.assert_allclose(got, want, atol=1e-9)
+    assert machine.status(10.25 + trajectory.duration_s / 2).progress == pytest.approx(0.5, abs=1e-6)
+    # A stop now brakes from where the delayed motion is, not from where it would have been.
+    machine.stop(10.25 + 0.5 * trajectory.duration_s)
+    stopped = machine.commanded_state(10.25 + 0.5 * trajectory.duration_s)
+    assert stopped is not None
+    np.testing.assert_allclose(stopped[0], trajectory.sample(0.5 * trajectory.duration_s)[0], atol=1e-9)
+
+
 @pytest.mark.parametrize("emergency", [False, True])
 def test_stop_is_jerk_limited_and_continuous(emergency: bool) -> None:
     machine = ExecutionStateMachine(LIMITS)

@@ -145,6 +145,37 @@ def test_execute_preempt_stop(executor: tuple[ExecutorNode, RobonavClient, FakeR
     assert client.status.last_result == "stopped"
 
 
+def test_a_motion_from_rest_handed_over_late_starts_at_rest_and_preempts_continuously(
+        executor: tuple[ExecutorNode, RobonavClient, FakeRobot], monkeypatch: pytest.MonkeyPatch) -> None:
+    node, client, robot = executor
+    play = node._stream.play
+
+    def slow_play(*args: object, **kwargs: object) -> None:
+        time.sleep(0.2)  # a machine too busy to hand the table over within the lead (50 ms here)
+        play(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(node._stream, "play", slow_play)
+    first = client.execute(_path(HOME, [0.8, 0.2, 0.0, 0.4, 0.0, 0.3, 0.0]), trajectory_id="late")
+    assert isinstance(first, ExecuteResponse), first
+    assert client.wait_for(lambda: len(robot.setpoints) > 300, 5.0)
+    monkeypatch.setattr(node._stream, "play", play)
+    # A preemption from the executor's commanded state: it must be what the stream plays now.
+    second = client.execute(_path(robot.position, [-0.3, 0.1, 0.0, 0.0, 0.2, 0.0, 0.0]), trajectory_id="second")
+    assert isinstance(second, ExecuteResponse), second
+    assert client.wait_for(lambda: client.status is not None and client.status.trajectory_id == "second"
+                           and client.status.state == "idle" and client.status.last_result == "succeeded", 10.0)
+    time.sleep(0.05)  # the last setpoints are in flight
+    setpoints = list(robot.setpoints)
+    ids = [s.trajectory_id for s in setpoints]
+    assert ids[0] == "late" and "second" in ids
+    # Its first setpoint is the start at rest (a driver follows it), not one already moving.
+    np.testing.assert_array_equal(setpoints[0].position, HOME)
+    np.testing.assert_array_equal(setpoints[0].velocity, np.zeros(7))
+    _assert_continuous(setpoints)
+    stats = node.stream_stats()
+    assert len(stats.delayed_s) == 1 and stats.delayed_s[0] > 0.1
+
+
 def test_watchdog_stops_on_stale_joint_states(executor: tuple[ExecutorNode, RobonavClient, FakeRobot]) -> None:
     _, client, robot = executor
     reply = client.execute(_path(HOME, [0.9, 0.3, 0.3, 0.5, 0.2, 0.3, 0.3]), trajectory_id="blind")

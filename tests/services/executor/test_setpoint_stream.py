@@ -3,10 +3,11 @@ a new table takes over at its start time, and closing mid-motion brakes to rest.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +122,84 @@ def test_tables_play_row_by_row_and_hand_over_at_their_start(stream: tuple[Setpo
     assert stats.published >= len(setpoints)
     times = stats.publish_times_s
     assert len(times) == stats.published and np.all(np.diff(times) > 0)
+
+def _parameterize(path: np.ndarray):  # noqa: ANN202
+    return time_parameterize(path, max_velocity=LIMITS.velocity, max_acceleration=LIMITS.acceleration,
+                             max_jerk=LIMITS.jerk, velocity_scaling=0.5, acceleration_scaling=0.5)
+
+
+def test_a_motion_from_rest_that_arrives_late_plays_from_its_first_row_and_later_tables_follow(
+        stream: tuple[SetpointStream, Received]) -> None:
+    handle, received = stream
+    period = handle.period_s
+    first = _parameterize(np.array([HOME, HOME + [0.5, 0, 0.3, 0, 0.4, 0, 0]]))
+    # Due 50 periods ago when it arrives: a hand-over on a machine too busy to make its lead.
+    start = handle.next_tick(time.monotonic()) - 50 * period
+    table_one = sample_table(first, "late", start, period)
+    handle.send(table_one)
+    deadline = time.monotonic() + 5.0
+    while handle.delay_ticks == 0 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    delay = handle.delay_ticks
+    assert delay >= 50
+    # A preemption computed on the sender's clock before it took the delay up: the stream plays
+    # it `delay` periods later too, so it continues the first table exactly.
+    switch = handle.next_tick(time.monotonic() + 0.2)
+    q, qd, qdd = first.sample(switch - start)
+    second = blend_from_state(_parameterize(np.array([q, q - 0.3])), q, qd, qdd)
+    table_two = sample_table(second, "two", switch, period)
+    handle.send(table_two, known_delay_ticks=0)
+    setpoints = received.wait_for_rest("two", 10.0)
+
+    ids = [s.trajectory_id for s in setpoints]
+    handover = ids.index("two")
+    assert set(ids[:handover]) == {"late"}
+    shift_s = delay * period
+    rows_one = _rows_at_stamps(dataclasses.replace(table_one, start_s=start + shift_s), setpoints[:handover], period)
+    rows_two = _rows_at_stamps(dataclasses.replace(table_two, start_s=switch + shift_s), setpoints[handover:], period)
+    assert rows_one[0] == 0, "the motion from rest did not start at its first row"
+    np.testing.assert_array_equal(setpoints[0].velocity, np.zeros(7))
+    assert rows_one[-1] < round((switch - start) / period) and rows_two[-1] == len(table_two.position) - 1
+    # (A loaded machine may stall the loop past the second's start: it then takes over a row or
+    # two in, counted late; it is not a motion from rest and delays nothing.)
+    stats = handle.stats()
+    assert len(stats.delayed_s) == 1 and stats.delayed_s[0] >= 50 * period - 1e-9
+    assert handle.delay_ticks == delay
+
+
+def test_a_late_preemption_takes_over_rows_in_and_delays_nothing(stream: tuple[SetpointStream, Received]) -> None:
+    handle, received = stream
+    period = handle.period_s
+    first = _parameterize(np.array([HOME, HOME + [0.8, 0, 0.5, 0, 0.6, 0, 0]]))
+    start = handle.next_tick(time.monotonic() + 0.05)
+    handle.send(sample_table(first, "one", start, period))
+    assert wait_until(lambda: len(received.setpoints) > 100, 5.0)
+    # (A loop stalled past the first one's start delays it a little: follow that, as the executor does.)
+    delay = handle.delay_ticks
+    played_from = start + delay * period
+    # Due 30 periods ago when it arrives; the arm is moving, so it must switch where the blend says.
+    switch = handle.next_tick(time.monotonic()) - 30 * period
+    q, qd, qdd = first.sample(switch - played_from)
+    assert np.abs(qd).max() > 0.05
+    table_two = sample_table(blend_from_state(_parameterize(np.array([q, q - 0.3])), q, qd, qdd), "two", switch, period)
+    handle.send(table_two, known_delay_ticks=delay)
+    setpoints = received.wait_for_rest("two", 10.0)
+    handover = [s.trajectory_id for s in setpoints].index("two")
+    rows_two = _rows_at_stamps(table_two, setpoints[handover:], period)
+    assert rows_two[0] >= 30
+    stats = handle.stats()
+    assert max(stats.late_s) >= 30 * period - 1e-9
+    assert handle.delay_ticks == delay
+
+
+def wait_until(condition: Callable[[], bool], timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.005)
+    return True
+
 
 def test_closing_mid_motion_brakes_to_rest_within_the_limits(stream: tuple[SetpointStream, Received]) -> None:
     handle, received = stream
