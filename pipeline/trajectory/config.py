@@ -32,7 +32,7 @@ class ExecutorConfig:
     """Watchdog: how far back setpoints count for the tracking error. The measured state lags
     the commanded one by the loop's latency (executor → robot → joint state → executor), which
     under load reaches a few tens of milliseconds, so a measurement is compared with every
-    setpoint of this last window and the closest one counts [s]."""
+    setpoint of this window before its arrival, and since, and the closest one counts [s]."""
     busy_wait_s: float = 0.0
     """The streaming loop polls the clock for this long before each tick instead of sleeping [s]."""
     realtime_priority: int = 50

@@ -225,8 +225,11 @@ class ExecutionStateMachine:
             return ErrorCode.JOINT_STATE_STALE
         if measured_q is not None and self._recent_q and \
                 np.max(np.abs(self._recent_q[-1] - measured_q)) > config.max_tracking_error_rad:
-            # Only then look back over the latency window (the common case costs one comparison).
-            window = [q for q, t in zip(self._recent_q, self._recent_t) if t >= now_s - config.tracking_latency_s]
+            # Only then look back over the latency window (the common case costs one comparison),
+            # which starts as much earlier as the measurement is old: a joint state held up (a
+            # stalled driver, bus or process) shows the arm where setpoints had it then.
+            since_s = now_s - joint_state_age_s - config.tracking_latency_s
+            window = [q for q, t in zip(self._recent_q, self._recent_t) if t >= since_s]
             errors = np.abs(np.array(window or [self._recent_q[-1]]) - measured_q)
             error = errors[int(np.argmin(np.max(errors, axis=1)))]
             joint = int(np.argmax(error))

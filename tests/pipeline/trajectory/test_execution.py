@@ -195,6 +195,25 @@ def test_watchdog_stops_on_tracking_error() -> None:
     assert machine.check_watchdog(0.2, None, float("inf"), WATCHDOG) is None
 
 
+def test_an_old_joint_state_is_tracked_against_the_setpoints_of_its_time() -> None:
+    """A joint state held up for longer than the latency window (a stalled driver or bus, but
+    not yet stale) shows the arm where the setpoints had it then: no tracking error."""
+    machine = ExecutionStateMachine(LIMITS)
+    trajectory = _trajectory()
+    machine.start(trajectory, "w", now_s=0.0)
+    then = None
+    for t in np.arange(0.0, 0.8, 0.005):
+        sample = machine.tick(float(t))
+        then = sample if then is None and t >= 0.35 else then
+    assert then is not None
+    now = machine.tick(0.8)
+    assert np.abs(now.position - then.position).max() > WATCHDOG.max_tracking_error_rad
+    # Arrived 0.15 s ago (stale at 0.2 s): with the window of 0.3 s before its arrival, it fits.
+    assert machine.check_watchdog(0.8, then.position, 0.15, WATCHDOG) is None
+    # The same position, just arrived, is far behind every setpoint of the last 0.3 s.
+    assert machine.check_watchdog(0.8, then.position, 0.0, WATCHDOG) == ErrorCode.TRACKING_ERROR
+
+
 def test_a_motion_from_rest_is_not_tracked_against_the_last_motions_setpoints() -> None:
     """After a motion, the arm turns up elsewhere (a restarted sim starts at home): the next
     execute starts where the arm is, and the previous motion's setpoints must not trip the watchdog."""
