@@ -212,14 +212,14 @@ class SimNode(Node):
             except ValueError as exc:  # ProtocolError is one: garbage, wrong joint names
                 braking = self.follower.state is DriverState.FOLLOWING
                 self.follower.reject_malformed(str(exc), now_s, commanded)
-                self._report("bad_message", str(exc), braking)
+                self._report("bad_message", str(exc), braking, None)
             else:
                 braking = self.follower.state is DriverState.FOLLOWING
                 rejection = self.follower.offer(q, qd, qdd, setpoint.stamp, now_s, commanded)
                 if rejection is None:
                     self.world.set_joint_target(q, qd)
                 else:
-                    self._report(rejection.reason, rejection.message, braking)
+                    self._report(rejection.reason, rejection.message, braking, setpoint.trajectory_id)
         if self.follower.tick(now_s, commanded):
             log.warning("no setpoint for %.0f ms mid-motion: braking to rest (setpoint watchdog)",
                         self.cfg.sim.setpoint_timeout_s * 1e3)
@@ -227,14 +227,19 @@ class SimNode(Node):
         if command is not None:
             self.world.set_joint_target(*command)
 
-    def _report(self, reason: str, message: str, braking: bool) -> None:
-        """Log a rejected setpoint: every one that brakes a moving arm, else the first of each reason."""
+    def _report(self, reason: str, message: str, braking: bool, trajectory_id: str | None) -> None:
+        """Log a rejected setpoint: every one that brakes a moving arm, else the first of each
+        trajectory (the first undecodable one of all): one line per refused motion."""
+        key = trajectory_id if trajectory_id is not None else f"<{reason}>"
         if braking:
-            log.warning("rejected a setpoint (%s: %s): braking to rest", reason, message)
-        elif reason not in self._reported:
-            log.warning("rejected a setpoint (%s: %s); further ones while the arm %s are counted in sim/stats",
-                        reason, message, self.follower.state.value)
-        self._reported.add(reason)
+            log.warning("rejected a setpoint of '%s' (%s: %s): braking to rest", trajectory_id, reason, message)
+        elif key not in self._reported:
+            log.warning("rejected a setpoint of '%s' (%s: %s); further ones while the arm is %s are counted in "
+                        "sim/stats", trajectory_id, reason, message, self.follower.state.value)
+        if trajectory_id is None:
+            self._reported.add(key)
+        else:  # only the newest motion's: the set stays small
+            self._reported = {k for k in self._reported if k.startswith("<")} | {key}
 
     def _step(self) -> None:
         self._apply_setpoint()
