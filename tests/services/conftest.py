@@ -101,15 +101,23 @@ def write_turn_lift_reach(directory: Path) -> Path:
 def wait_until_served(session: zenoh.Session, key: str, timeout_s: float = 10.0, *, served: bool = True) -> None:
     """Wait until `session` sees a queryable on `key` (or, with `served=False`, none): a query
     sent right after another session declared one may reach the router before the declaration
-    does, and get no reply at all; one sent after an undeclaration may still be routed to it."""
-    querier = session.declare_querier(key)
+    does, and get no reply at all; one sent after an undeclaration may still be routed to it.
+
+    The querier is declared afresh every half second: once in a long while (one test run in
+    several) a querier kept seeing a queryable for 10 s after it was undeclared, while a new
+    querier asks the router for what is declared now."""
     deadline = time.monotonic() + timeout_s
-    try:
-        while querier.matching_status.matching != served:
-            assert time.monotonic() < deadline, f"queryable on {key} still {'absent' if served else 'seen'} after {timeout_s} s"
-            time.sleep(0.02)
-    finally:
-        querier.undeclare()
+    while True:
+        querier = session.declare_querier(key)
+        try:
+            renew_at = time.monotonic() + 0.5
+            while time.monotonic() < renew_at:
+                if querier.matching_status.matching == served:
+                    return
+                time.sleep(0.02)
+        finally:
+            querier.undeclare()
+        assert time.monotonic() < deadline, f"queryable on {key} still {'absent' if served else 'seen'} after {timeout_s} s"
 
 
 class StandInPeer:
