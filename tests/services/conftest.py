@@ -98,6 +98,16 @@ def write_turn_lift_reach(directory: Path) -> Path:
     return path
 
 
+def wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    """Poll `condition` until it holds (True) or `timeout_s` passed (its last value)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.01)
+    return condition()
+
+
 def wait_until_served(session: zenoh.Session, key: str, timeout_s: float = 10.0, *, served: bool = True) -> None:
     """Wait until `session` sees a queryable on `key` (or, with `served=False`, none): a query
     sent right after another session declared one may reach the router before the declaration

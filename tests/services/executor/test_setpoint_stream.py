@@ -7,7 +7,7 @@ import dataclasses
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +23,7 @@ from robonav.services.common import open_session
 from robonav.services.config import ZenohConfig, load_config
 from robonav.services.executor.setpoint_stream import SetpointStream, wall_from_monotonic
 
-from ..conftest import free_port
+from ..conftest import free_port, wait_for
 
 CONFIG = load_config()
 HOME = np.array(CONFIG.robot.home_position_rad)
@@ -173,7 +173,7 @@ def test_a_late_preemption_takes_over_rows_in_and_delays_nothing(stream: tuple[S
     first = _parameterize(np.array([HOME, HOME + [0.8, 0, 0.5, 0, 0.6, 0, 0]]))
     start = handle.next_tick(time.monotonic() + 0.05)
     handle.send(sample_table(first, "one", start, period))
-    assert wait_until(lambda: len(received.setpoints) > 100, 5.0)
+    assert wait_for(lambda: len(received.setpoints) > 100, 5.0)
     # (A loop stalled past the first one's start delays it a little: follow that, as the executor does.)
     delay = handle.delay_ticks
     played_from = start + delay * period
@@ -190,15 +190,6 @@ def test_a_late_preemption_takes_over_rows_in_and_delays_nothing(stream: tuple[S
     stats = handle.stats()
     assert max(stats.late_s) >= 30 * period - 1e-9
     assert handle.delay_ticks == delay
-
-
-def wait_until(condition: Callable[[], bool], timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
 
 
 def test_closing_mid_motion_brakes_to_rest_within_the_limits(stream: tuple[SetpointStream, Received]) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Iterator
 
 import pytest
@@ -11,7 +10,7 @@ import zenoh
 from robonav.services.common import open_session
 from robonav.services.config import ZenohConfig
 
-from ..conftest import free_port
+from ..conftest import free_port, wait_for  # noqa: F401 - the recording tests import it from here
 
 
 @pytest.fixture
@@ -34,11 +33,3 @@ def sessions(endpoint: str) -> Iterator[Callable[[], zenoh.Session]]:
     for s in opened:
         s.close()
 
-
-def wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.01)
-    return condition()

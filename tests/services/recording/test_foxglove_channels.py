@@ -40,6 +40,8 @@ from robonav.services.client import RobonavClient
 from robonav.services.config import load_config
 from robonav.services.recording.record import Recorder
 
+from .conftest import wait_for
+
 DEFAULT = load_config()
 ROBOT = RobotModel.from_config(DEFAULT.robot)
 # Out of the arm's reach (0.85 m), so planning is unaffected; one object of every shape.
@@ -53,15 +55,6 @@ OBJECTS = (
 )
 # Just beyond the finger tips (0.1034 m along the hand's z), touching only the fingers.
 TOOL = SceneObjectSpec("fx_tool", "sphere", (0.0, 0.0, 0.13), radius_m=0.01, frame_id="panda_hand")
-
-
-def _wait(condition: Any, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.05)
-    return True
 
 
 def _move(client: RobonavClient, goal: np.ndarray) -> None:
@@ -101,7 +94,7 @@ def recording(client: RobonavClient, session: zenoh.Session, tmp_path_factory: p
         assert start is not None
         goal = np.array(DEFAULT.demo.goals_rad[0])
         _move(client, goal if np.abs(goal - start).max() > 0.1 else np.array(DEFAULT.robot.home_position_rad))
-        assert _wait(lambda: recorder.stats.received[client.keys.clusters] > 0, 10.0), "no clusters published"
+        assert wait_for(lambda: recorder.stats.received[client.keys.clusters] > 0, 10.0), "no clusters published"
     finally:
         removed = client.scene(SceneRequest(operation="remove", names=tuple(o.name for o in (*OBJECTS, TOOL))))
         time.sleep(0.3)  # the scene without them is recorded too
