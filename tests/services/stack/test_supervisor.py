@@ -9,24 +9,16 @@ import re
 import signal
 import sys
 import time
-from collections.abc import Callable
 
 import pytest
 
 from robonav.services.config import StackConfig
 from robonav.services.stack.supervisor import Supervisor, describe_exit
 
+from ..conftest import wait_for
+
 SLEEPER = [sys.executable, "-c", "import time; time.sleep(60)"]
 FAILER = [sys.executable, "-c", "import sys; sys.exit(3)"]
-
-
-def _until(check: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if check():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 def _row(supervisor: Supervisor, name: str):  # noqa: ANN202
@@ -43,11 +35,11 @@ def test_a_killed_process_is_restarted_counted_and_back_when_its_token_returns()
         assert _row(supervisor, "worker").alive and _row(supervisor, "worker").state == "running"
         os.kill(first, signal.SIGKILL)
         supervisor.token("worker", False)  # as Zenoh reports the dead session's token
-        assert _until(lambda: _row(supervisor, "worker").state == "restarting")
+        assert wait_for(lambda: _row(supervisor, "worker").state == "restarting")
         row = _row(supervisor, "worker")
         assert not row.alive and row.last_exit_code == -signal.SIGKILL and row.restart_in_s is not None
         assert supervisor.dead() == {"worker": -signal.SIGKILL}
-        assert _until(lambda: supervisor.pid("worker") not in (None, first))
+        assert wait_for(lambda: supervisor.pid("worker") not in (None, first))
         row = _row(supervisor, "worker")
         assert row.restarts == 1 and row.state == "running" and not row.alive and row.last_back_s is None
         time.sleep(0.3)
@@ -66,7 +58,7 @@ def test_the_wait_doubles_for_exits_in_a_row_up_to_the_bound_and_falls_back_afte
     supervisor = Supervisor(StackConfig(restart_backoff_initial_s=0.1, restart_backoff_max_s=0.4), restart=True)
     supervisor.add("crashy", lambda: FAILER, has_token=False)
     supervisor.run_in_background()
-    assert _until(lambda: _row(supervisor, "crashy").restarts >= 4, timeout_s=30.0)
+    assert wait_for(lambda: _row(supervisor, "crashy").restarts >= 4, timeout_s=30.0)
     supervisor.stop([["crashy"]], grace_s=5.0)
     waits = [float(m.group(1)) for r in caplog.records if (m := re.search(r"restarting in ([0-9.]+) s", r.getMessage()))]
     assert waits[:4] == [0.1, 0.2, 0.4, 0.4], waits
@@ -77,7 +69,7 @@ def test_the_wait_doubles_for_exits_in_a_row_up_to_the_bound_and_falls_back_afte
     healthy = Supervisor(policy, restart=True)
     healthy.add("steady", lambda: [sys.executable, "-c", "import time; time.sleep(1.2)"], has_token=False)
     healthy._children["steady"].backoff_s = 0.4  # as after several quick exits
-    assert _until(lambda: (healthy.poll(), _row(healthy, "steady").restarts >= 1)[1], timeout_s=20.0)
+    assert wait_for(lambda: (healthy.poll(), _row(healthy, "steady").restarts >= 1)[1], timeout_s=20.0)
     healthy.stop([["steady"]], grace_s=5.0)
     waits = [float(m.group(1)) for r in caplog.records if (m := re.search(r"restarting in ([0-9.]+) s", r.getMessage()))]
     assert waits[0] == 0.1, waits  # it ran longer than restart_backoff_reset_s
@@ -87,7 +79,7 @@ def test_without_restarts_an_exit_is_final_and_reported() -> None:
     supervisor = Supervisor(StackConfig(), restart=False)
     supervisor.add("once", lambda: FAILER)
     supervisor.add("view", lambda: SLEEPER, has_token=False)
-    assert _until(lambda: "once" in supervisor.dead())
+    assert wait_for(lambda: "once" in supervisor.dead())
     time.sleep(0.3)
     supervisor.poll()
     once, view = _row(supervisor, "once"), _row(supervisor, "view")
