@@ -12,6 +12,7 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import logging
+import math
 import queue
 import threading
 import time
@@ -111,6 +112,8 @@ class SimNode(Node):
             self.world.commanded_target()[0], timeout_s=cfg.sim.setpoint_timeout_s, slack_s=cfg.sim.setpoint_slack_s)
         """The arm's own rules for setpoints, as a real driver's: only what the arm can do, brake when they stop."""
         self._reported: set[str] = set()
+        self._reported_at_s = -math.inf
+        """time.monotonic() of the last refusal logged while the arm was not moving."""
         self._commands: queue.SimpleQueue[tuple[Callable[[], Any], concurrent.futures.Future[Any]]] = queue.SimpleQueue()
         keys = Keys(cfg.cell)
         self._joint_pub = session.declare_publisher(keys.joint_states)
@@ -229,13 +232,17 @@ class SimNode(Node):
 
     def _report(self, reason: str, message: str, braking: bool, trajectory_id: str | None) -> None:
         """Log a rejected setpoint: every one that brakes a moving arm, else the first of each
-        trajectory (the first undecodable one of all): one line per refused motion."""
+        trajectory (the first undecodable one of all), at most one a second: a line per refused
+        motion, and no flood from a commander that names every setpoint anew."""
+        what = f"a setpoint of '{trajectory_id}'" if trajectory_id is not None else "a setpoint"
         key = trajectory_id if trajectory_id is not None else f"<{reason}>"
+        now_s = time.monotonic()
         if braking:
-            log.warning("rejected a setpoint of '%s' (%s: %s): braking to rest", trajectory_id, reason, message)
-        elif key not in self._reported:
-            log.warning("rejected a setpoint of '%s' (%s: %s); further ones while the arm is %s are counted in "
-                        "sim/stats", trajectory_id, reason, message, self.follower.state.value)
+            log.warning("rejected %s (%s: %s): braking to rest", what, reason, message)
+        elif key not in self._reported and now_s - self._reported_at_s >= 1.0:
+            log.warning("rejected %s (%s: %s); further ones while the arm is %s are counted in sim/stats",
+                        what, reason, message, self.follower.state.value)
+            self._reported_at_s = now_s
         if trajectory_id is None:
             self._reported.add(key)
         else:  # only the newest motion's: the set stays small
