@@ -111,7 +111,9 @@ class SimNode(Node):
                          jerk=np.array(cfg.robot.max_jerk_rad_s3, float)),
             self.world.commanded_target()[0], timeout_s=cfg.sim.setpoint_timeout_s, slack_s=cfg.sim.setpoint_slack_s)
         """The arm's own rules for setpoints, as a real driver's: only what the arm can do, brake when they stop."""
-        self._reported: set[str] = set()
+        self._reported_trajectory: str | None = None
+        """The motion whose refused setpoints were last logged (or passed over by the rate limit)."""
+        self._reported_malformed: set[str] = set()
         self._reported_at_s = -math.inf
         """time.monotonic() of the last refusal logged while the arm was not moving."""
         self._commands: queue.SimpleQueue[tuple[Callable[[], Any], concurrent.futures.Future[Any]]] = queue.SimpleQueue()
@@ -235,18 +237,18 @@ class SimNode(Node):
         trajectory (the first undecodable one of all), at most one a second: a line per refused
         motion, and no flood from a commander that names every setpoint anew."""
         what = f"a setpoint of '{trajectory_id}'" if trajectory_id is not None else "a setpoint"
-        key = trajectory_id if trajectory_id is not None else f"<{reason}>"
+        seen = reason in self._reported_malformed if trajectory_id is None else trajectory_id == self._reported_trajectory
         now_s = time.monotonic()
         if braking:
             log.warning("rejected %s (%s: %s): braking to rest", what, reason, message)
-        elif key not in self._reported and now_s - self._reported_at_s >= 1.0:
+        elif not seen and now_s - self._reported_at_s >= 1.0:
             log.warning("rejected %s (%s: %s); further ones while the arm is %s are counted in sim/stats",
                         what, reason, message, self.follower.state.value)
             self._reported_at_s = now_s
         if trajectory_id is None:
-            self._reported.add(key)
-        else:  # only the newest motion's: the set stays small
-            self._reported = {k for k in self._reported if k.startswith("<")} | {key}
+            self._reported_malformed.add(reason)
+        else:
+            self._reported_trajectory = trajectory_id
 
     def _step(self) -> None:
         self._apply_setpoint()

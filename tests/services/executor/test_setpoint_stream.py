@@ -84,12 +84,15 @@ def _rows_at_stamps(table: SetpointTable, setpoints: list[Setpoint], period_s: f
     return rows
 
 
+def _parameterize(path: np.ndarray):  # noqa: ANN202
+    return time_parameterize(path, max_velocity=LIMITS.velocity, max_acceleration=LIMITS.acceleration,
+                             max_jerk=LIMITS.jerk, velocity_scaling=0.5, acceleration_scaling=0.5)
+
+
 def test_tables_play_row_by_row_and_hand_over_at_their_start(stream: tuple[SetpointStream, Received]) -> None:
     handle, received = stream
     period = handle.period_s
-    first = time_parameterize(np.array([HOME, HOME + 0.4, HOME + [0.6, 0, 0.2, 0, 0.3, 0, 0]]), max_velocity=LIMITS.velocity,
-                              max_acceleration=LIMITS.acceleration, max_jerk=LIMITS.jerk, velocity_scaling=0.5,
-                              acceleration_scaling=0.5)
+    first = _parameterize(np.array([HOME, HOME + 0.4, HOME + [0.6, 0, 0.2, 0, 0.3, 0, 0]]))
     start = handle.next_tick(time.monotonic() + 0.05)
     assert abs((start - handle.origin_s) / period - round((start - handle.origin_s) / period)) < 1e-6
     table_one = sample_table(first, "one", start, period)
@@ -100,9 +103,7 @@ def test_tables_play_row_by_row_and_hand_over_at_their_start(stream: tuple[Setpo
     # once took 128 ms; a table that arrives after its start takes over late).
     switch = handle.next_tick(time.monotonic() + 0.3)
     q, qd, qdd = first.sample(switch - start)
-    second = blend_from_state(time_parameterize(np.array([q, q - 0.3]), max_velocity=LIMITS.velocity,
-                                                max_acceleration=LIMITS.acceleration, max_jerk=LIMITS.jerk,
-                                                velocity_scaling=0.5, acceleration_scaling=0.5), q, qd, qdd)
+    second = blend_from_state(_parameterize(np.array([q, q - 0.3])), q, qd, qdd)
     table_two = sample_table(second, "two", switch, period)
     handle.send(table_two)
     setpoints = received.wait_for_rest("two", 10.0)
@@ -122,11 +123,6 @@ def test_tables_play_row_by_row_and_hand_over_at_their_start(stream: tuple[Setpo
     assert stats.published >= len(setpoints)
     times = stats.publish_times_s
     assert len(times) == stats.published and np.all(np.diff(times) > 0)
-
-def _parameterize(path: np.ndarray):  # noqa: ANN202
-    return time_parameterize(path, max_velocity=LIMITS.velocity, max_acceleration=LIMITS.acceleration,
-                             max_jerk=LIMITS.jerk, velocity_scaling=0.5, acceleration_scaling=0.5)
-
 
 def test_a_motion_from_rest_that_arrives_late_plays_from_its_first_row_and_later_tables_follow(
         stream: tuple[SetpointStream, Received]) -> None:
@@ -194,9 +190,7 @@ def test_a_late_preemption_takes_over_rows_in_and_delays_nothing(stream: tuple[S
 
 def test_closing_mid_motion_brakes_to_rest_within_the_limits(stream: tuple[SetpointStream, Received]) -> None:
     handle, received = stream
-    long = time_parameterize(np.array([HOME, HOME + [1.2, 0.4, 0.8, 0.5, 1.0, 0.5, 1.0]]), max_velocity=LIMITS.velocity,
-                             max_acceleration=LIMITS.acceleration, max_jerk=LIMITS.jerk, velocity_scaling=0.5,
-                             acceleration_scaling=0.5)
+    long = _parameterize(np.array([HOME, HOME + [1.2, 0.4, 0.8, 0.5, 1.0, 0.5, 1.0]]))
     handle.send(sample_table(long, "long", handle.next_tick(time.monotonic() + 0.02), handle.period_s))
     time.sleep(0.4)
     assert received.setpoints and np.abs(received.setpoints[-1].velocity).max() > 0.1
