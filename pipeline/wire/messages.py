@@ -306,7 +306,12 @@ class PlanResponse(Message):
     start_escaped: bool = False
     """The start was inside the robot's padding around the occupancy map (bare links clear): the
     first segment leaves the padding through states where the bare links stay clear of the map."""
+    scene_revision: int | None = None
+    """Revision of the planner scene the path was planned in; pass it on as
+    `ExecuteRequest.scene_revision` so the executor checks the path against that scene or a newer one."""
     ok: bool = True
+
+    ADDED_KEYS: ClassVar[tuple[str, ...]] = ("scene_revision",)
 
 
 @dataclass(frozen=True)
@@ -329,10 +334,17 @@ class ExecuteRequest(Message):
     """`PlanResponse.occupancy_stamp` of the plan this path came from. Accepted for compatibility,
     no longer used: the executor checks the motion against its own newest map and watches every
     voxel not in that map, whatever map the plan saw."""
+    scene_revision: int | None = None
+    """The planner scene revision the path must be checked against, or a newer one
+    (`PlanResponse.scene_revision`, or `SceneResponse.revision` of a change just made): the
+    executor waits up to `executor.scene_wait_s` for it to arrive on `planner/scene_state`, then
+    refuses with SCENE_MISSING. Without it the executor checks against the last scene it received."""
 
     def __post_init__(self) -> None:
         if self.path.shape[0] < 1:
             raise ValueError("ExecuteRequest: path has no waypoints")
+        if self.scene_revision is not None and self.scene_revision < 0:
+            raise ValueError(f"ExecuteRequest: scene_revision must be >= 0, got {self.scene_revision}")
         if self.replan_attempts is not None and self.replan_attempts < 1:
             raise ValueError(f"ExecuteRequest: replan_attempts must be >= 1, got {self.replan_attempts}")
         if self.joint_names is not None:

@@ -346,7 +346,7 @@ class SceneRunner:
                 self._check_against_box(plan.path, record)
             trajectory_id = f"campaign-{record.scene}-{record.index}-{attempt}-{self.plan_seq}"
             fields: dict[str, Any] = {"joint_names": plan.joint_names, "trajectory_id": trajectory_id,
-                                      "occupancy_stamp": plan.occupancy_stamp}
+                                      "occupancy_stamp": plan.occupancy_stamp, "scene_revision": plan.scene_revision}
             velocity_scaling, acceleration_scaling = self._scaling(moving=record.moving)
             fields.update(max_velocity_scaling_factor=velocity_scaling, max_acceleration_scaling_factor=acceleration_scaling)
             execution = self.client.execute(plan.path, **fields)

@@ -13,7 +13,9 @@ A planner that dies leaves its last scene in force (what the cell last agreed on
 planner publishes its (empty) scene again and that replaces it. Before any scene arrived (no
 planner has run, or it has not answered yet) an execute waits `executor.scene_wait_s` and is
 then refused with SCENE_MISSING, unless `executor.require_scene` is off (a cell without a
-planner), when motions are checked against the map alone. The map obeys the planner's rules:
+planner), when motions are checked against the map alone. An execute that names a scene
+revision (its plan's, or that of a change the client just made) waits as long for that
+revision, since the planner answers a change before its scene reaches the executor. The map obeys the planner's rules:
 missing, stale (by its stamp) or incomplete maps refuse the execute as they refuse a plan.
 
 A map that says its inflation is planned with that clearance kept on the way and released
@@ -126,15 +128,16 @@ class ExecuteCheck:
         with self._scene_arrived:
             return None if self._scene is None else self._scene.state.revision
 
-    def check(self, path: FloatArray, timing: Timing) -> CheckedMotion:
-        """Time `path` (K, n) with `timing` and check the motion against the newest map and the planner's scene.
+    def check(self, path: FloatArray, timing: Timing, min_scene_revision: int | None = None) -> CheckedMotion:
+        """Time `path` (K, n) with `timing` and check the motion against the newest map and the
+        planner's scene (at least `min_scene_revision` when given).
 
         Raises:
             ProtocolError: SCENE_MISSING, OCCUPANCY_MISSING / _STALE / _INCOMPLETE (the planner's
                 map rules), PATH_IN_COLLISION or OUT_OF_JOINT_LIMITS (the first bad sample).
         """
         started = time.perf_counter()
-        scene = self._wait_for_scene()
+        scene = self._wait_for_scene(min_scene_revision)
         occupancy = self._wait_for_map()
         with self._world_lock:
             self._apply(scene, occupancy)
@@ -156,16 +159,30 @@ class ExecuteCheck:
             return contextlib.nullcontext()
         return self._world.anchored(path[:1], math.inf)
 
-    def _wait_for_scene(self) -> _Scene | None:
+    def _wait_for_scene(self, min_revision: int | None) -> _Scene | None:
+        """The last scene received; with `min_revision`, waits for one at least that new (the
+        planner's reply to a change comes a moment before its scene reaches here)."""
+        wait_s, key = self._cfg.executor.scene_wait_s, Keys(self._cfg.cell).scene_state
+
+        def arrived() -> bool:
+            return self._scene is not None and (min_revision is None or self._scene.state.revision >= min_revision)
+
         with self._scene_arrived:
-            if self._cfg.executor.require_scene:  # without the need, a scene counts when there is one
-                self._scene_arrived.wait_for(lambda: self._scene is not None, timeout=self._cfg.executor.scene_wait_s)
+            # Without the need (and no revision asked for), a scene counts when there is one.
+            if self._cfg.executor.require_scene or min_revision is not None:
+                self._scene_arrived.wait_for(arrived, timeout=wait_s)
             scene = self._scene
+        if min_revision is not None and (scene is None or scene.state.revision < min_revision):
+            have = None if scene is None else scene.state.revision
+            raise ProtocolError(ErrorCode.SCENE_MISSING,
+                                f"the execute asks for planner scene revision {min_revision} or newer and the executor "
+                                f"has {'none' if have is None else f'revision {have}'} after {wait_s} s on {key} "
+                                "(a planner restarted without its scene file starts again at revision 0)",
+                                {"scene_revision": have, "required_scene_revision": min_revision})
         if scene is None and self._cfg.executor.require_scene:
             raise ProtocolError(ErrorCode.SCENE_MISSING,
-                                f"no planner scene on {Keys(self._cfg.cell).scene_state} within "
-                                f"{self._cfg.executor.scene_wait_s} s: the executor checks every motion against the "
-                                "planner's objects and has none (is a planner running?)")
+                                f"no planner scene on {key} within {wait_s} s: the executor checks every motion "
+                                "against the planner's objects and has none (is a planner running?)")
         return scene
 
     def _wait_for_map(self) -> Occupancy | None:

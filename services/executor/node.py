@@ -172,7 +172,8 @@ class ExecutorNode(Node):
         # streaming goes on meanwhile. `occupancy_stamp` is no longer needed: the motion is
         # checked against the newest map, and the monitor watches every voxel not in that one.
         checked = self.check.check(path, lambda valid: self._time_parameterize(
-            path, request.max_velocity_scaling_factor, request.max_acceleration_scaling_factor, valid))
+            path, request.max_velocity_scaling_factor, request.max_acceleration_scaling_factor, valid),
+            request.scene_revision)
         trajectory = checked.trajectory
         trajectory_id = request.trajectory_id or uuid.uuid4().hex[:12]
         with self._lock:

@@ -228,7 +228,7 @@ class PathMonitor:
         """
         path = reorder_to_robot(plan.path, plan.joint_names, self._node.robot.joint_names, "path")
         checked = self._node.check.check(path, lambda valid: self._node._time_parameterize(
-            path, execution.velocity_scaling, execution.acceleration_scaling, valid))
+            path, execution.velocity_scaling, execution.acceleration_scaling, valid), plan.scene_revision)
         trajectory = checked.trajectory
         with self._node._lock:
             if self._node._execution is not execution or self._node.machine.state is not ExecutionState.REPLANNING:

@@ -191,7 +191,7 @@ class PlannerNode(Node):
             outcome = plan_worker.planner.plan(problem)
         except ValueError as exc:  # shapes and values the decoder cannot know about
             raise ProtocolError(ErrorCode.INVALID_REQUEST, str(exc)) from exc
-        map_stamp = plan_worker.map_stamp
+        map_stamp, scene_revision = plan_worker.map_stamp, plan_worker.scene_revision
         if outcome.status is not PlanStatus.SUCCESS or outcome.path is None:
             reply_error(query, STATUS_CODES[outcome.status], outcome.detail, outcome.details)
             return
@@ -208,6 +208,7 @@ class PlannerNode(Node):
             max_velocity_scaling_factor=request.max_velocity_scaling_factor,
             max_acceleration_scaling_factor=request.max_acceleration_scaling_factor,
             request_id=request.request_id, start_escaped=outcome.start_escape is not None,
+            scene_revision=scene_revision,
         ))
 
     def _joint_goals(self, request: PlanRequest) -> np.ndarray | None:

@@ -145,7 +145,7 @@ def move_to_goal(client: RobonavClient, truth: CollisionWorld, cfg: RobonavConfi
         # A map that changes under the moving arm (noise, a newly seen surface) should cost a
         # replan, not the goal.
         execution = client.execute(plan.path, joint_names=plan.joint_names, replan=True,
-                                   occupancy_stamp=plan.occupancy_stamp)
+                                   occupancy_stamp=plan.occupancy_stamp, scene_revision=plan.scene_revision)
         if isinstance(execution, ErrorReply):
             # The executor checks the path against its own, newer map: a voxel that came in since
             # the plan refuses it (PATH_IN_COLLISION), and a new plan sees that voxel too.

@@ -98,7 +98,8 @@ def plan_and_execute(client: RobonavClient, args: argparse.Namespace, request: P
         return EXIT_INTERRUPTED, record
     scaling = args.velocity_scaling
     execution = client.execute(plan.path, joint_names=plan.joint_names, timeout_s=args.timeout, replan=args.replan,
-                               occupancy_stamp=plan.occupancy_stamp, max_velocity_scaling_factor=scaling,
+                               occupancy_stamp=plan.occupancy_stamp, scene_revision=plan.scene_revision,
+                               max_velocity_scaling_factor=scaling,
                                max_acceleration_scaling_factor=scaling)
     if isinstance(execution, ErrorReply):
         record.update(ok=False, stage="execute", code=execution.code, message=execution.message, details=execution.details)

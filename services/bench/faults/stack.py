@@ -126,7 +126,8 @@ def plan_and_execute(client: RobonavClient, goal_rad: np.ndarray, *, seed: int, 
         if not isinstance(plan, PlanResponse):
             return {"ok": False, "stage": "plan", "detail": f"{plan.code}: {plan.message}"}
         execution = client.execute(plan.path, joint_names=plan.joint_names, replan=True,
-                                   occupancy_stamp=plan.occupancy_stamp, timeout_s=timeout_s)
+                                   occupancy_stamp=plan.occupancy_stamp, scene_revision=plan.scene_revision,
+                                   timeout_s=timeout_s)
         if isinstance(execution, ErrorReply):
             return {"ok": False, "stage": "execute", "detail": f"{execution.code}: {execution.message}"}
         assert isinstance(execution, ExecuteResponse)

@@ -235,9 +235,9 @@ def test_odd_joint_states_are_no_measurement_and_hold_nothing_back(executor: tup
     assert client.wait_for_trajectory("after", reply.duration_s + 5.0) == "succeeded"
 
 
-def _raw_execute(client: RobonavClient, path: np.ndarray) -> ErrorReply | ExecuteResponse:
-    """An execute request encoded by hand, so shapes the Python constructor refuses can be sent."""
-    payload = msgpack.unpackb(ExecuteRequest(path=HOME[None, :]).to_wire())
+def _raw_execute(client: RobonavClient, path: np.ndarray, **fields: object) -> ErrorReply | ExecuteResponse:
+    """An execute request encoded by hand, so shapes and values the Python constructor refuses can be sent."""
+    payload = msgpack.unpackb(ExecuteRequest(path=HOME[None, :]).to_wire()) | fields
     payload["path"] = {"dtype": "<f8", "shape": list(path.shape), "data": path.astype("<f8").tobytes()}
     started = time.monotonic()
     replies = client.session.get(client.keys.execute, payload=msgpack.packb(payload), timeout=5.0)
@@ -361,6 +361,32 @@ def test_an_execute_through_a_planner_scene_object_is_refused(executor: tuple[Ex
     reply = client.execute(back)
     assert isinstance(reply, ErrorReply) and reply.code == "PATH_IN_COLLISION", reply
     assert any(pair.startswith("pole|") for pair in reply.details["pairs"]), reply.details
+
+
+def test_an_execute_naming_a_scene_revision_waits_for_it(executor: tuple[ExecutorNode, RobonavClient, FakeRobot]) -> None:
+    """The planner answers a scene change before its scene reaches the executor: an execute that
+    names the change's revision is checked against it (or refused), never against the scene before."""
+    node, client, robot = executor
+    scene = declare_latched_publisher(client.session, client.keys.scene_state)
+    scene.put(PlanningSceneState(stamp=time.time(), revision=1).to_wire())
+    assert client.wait_for(lambda: node.check.scene_revision == 1, 5.0)
+    box = SceneObjectSpec("box", "box", tuple(HAND_ON_SWING), size_m=(0.1, 0.1, 0.1))
+    changed = PlanningSceneState(stamp=time.time(), revision=2, objects=(box,)).to_wire()
+    late = threading.Timer(node.cfg.executor.scene_wait_s / 2, lambda: scene.put(changed))
+    late.start()
+    try:
+        reply = client.execute(SWING, scene_revision=2)
+    finally:
+        late.join()
+    assert isinstance(reply, ErrorReply) and reply.code == "PATH_IN_COLLISION", reply
+    assert reply.details["scene_revision"] == 2 and any(pair.endswith("|box") for pair in reply.details["pairs"])
+    started = time.monotonic()
+    reply = client.execute(SWING, scene_revision=3)  # a revision that never comes
+    assert isinstance(reply, ErrorReply) and reply.code == "SCENE_MISSING", reply
+    assert time.monotonic() - started >= node.cfg.executor.scene_wait_s
+    assert reply.details == {"scene_revision": 2, "required_scene_revision": 3} and not robot.setpoints
+    reply = _raw_execute(client, SWING, scene_revision=-1)
+    assert isinstance(reply, ErrorReply) and reply.code == "INVALID_REQUEST", reply
 
 
 def test_without_a_planner_scene_an_execute_is_refused(executor: tuple[ExecutorNode, RobonavClient, FakeRobot]) -> None:

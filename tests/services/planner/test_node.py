@@ -286,7 +286,8 @@ def test_goal_forms_and_the_planning_scene_over_zenoh(planner: tuple[PlannerNode
     assert any("crate" in pair for pair in reply.details["pairs"]), reply.details
     scene = client.scene(SceneRequest(operation="remove", names=("crate",)))
     assert isinstance(scene, SceneResponse) and scene.objects == ()
-    assert isinstance(fresh(lambda: client.plan(GOAL, start_positions=HOME, seed=3)), PlanResponse)
+    reply = fresh(lambda: client.plan(GOAL, start_positions=HOME, seed=3))
+    assert isinstance(reply, PlanResponse) and reply.scene_revision == scene.revision == 2, reply
 
 
 def test_the_planner_publishes_its_whole_scene_latched_on_every_change(
