@@ -126,7 +126,12 @@ class SimNode(Node):
         # Setpoints arrive at 1 kHz and only the newest matters: a ring channel keeps it in Zenoh
         # (no Python callback per sample competing for the GIL); the physics loop decodes one per step.
         self._setpoint_sub = session.declare_subscriber(keys.setpoint, zenoh.handlers.RingChannel(1))
-        self._subs = [session.declare_subscriber(keys.status, guarded_subscriber(self.on_status, "sim"))]
+        # The executor's status (progress for scripted objects) likewise waits in Zenoh for the
+        # physics loop, which reads it on its own thread: a Python callback would make Zenoh's
+        # receive thread, which setpoints share, wait for the GIL the physics step holds. Sixteen
+        # statuses cover a stall of the loop far longer than any observed (0.8 s at 20 Hz).
+        self._status_sub = session.declare_subscriber(keys.status, zenoh.handlers.RingChannel(16))
+        self._on_status = guarded_subscriber(self.on_status, "sim")
         self._queryables = [
             session.declare_queryable(keys.contacts, guarded_queryable(self.handle_contacts, "sim")),
             session.declare_queryable(keys.sim_objects, guarded_queryable(self.handle_objects, "sim")),
@@ -137,9 +142,9 @@ class SimNode(Node):
     # --- Zenoh callbacks (any thread; on_setpoint runs on the physics thread) -------------------
 
     def on_status(self, sample: zenoh.Sample) -> None:
+        """On the physics thread, for each status received since the last step."""
         status = ExecutorStatus.from_wire(sample.payload.to_bytes())
-        self._commands.put((lambda: self.objects.script.on_progress(status.trajectory_id, status.state, status.progress),
-                            concurrent.futures.Future()))
+        self.objects.script.on_progress(status.trajectory_id, status.state, status.progress)
 
     def handle_contacts(self, query: zenoh.Query) -> None:
         request = decode_request(query, ContactsRequest)
@@ -313,6 +318,8 @@ class SimNode(Node):
                 self._step()
                 steps += 1
             self._run_commands()
+            while (status := self._status_sub.try_recv()) is not None:
+                self._on_status(status)
             sim_t = self.world.sim_time_s
             if sim_t >= next_joint:
                 self._publish_joint_state(time.time())
@@ -333,7 +340,7 @@ class SimNode(Node):
             worker.request_stop()
         for worker in self.workers:
             worker.close()
-        for entity in (*self._queryables, *self._subs, self._setpoint_sub, self._joint_pub, self._event_pub,
+        for entity in (*self._queryables, self._status_sub, self._setpoint_sub, self._joint_pub, self._event_pub,
                        self._cameras_pub):
             entity.undeclare()
         self.world.close()
