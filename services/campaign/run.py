@@ -266,6 +266,10 @@ def table(summary: dict[str, Any]) -> str:
         ("executor watchdog stops", ", ".join(f"{code} {n}" for code, n in summary.get("executor_faults", {}).items())
                                     or "0"),
         ("arm: rejected setpoints / timeouts / brakes", _driver_row(summary.get("sim", {}))),
+        ("sim: dropped s / step late max ms / joint-state gap max ms",
+         " / ".join(str(v) for v in (summary.get("sim", {}).get("dropped_time_s"),
+                                     summary.get("sim", {}).get("step_lateness_ms", {}).get("max"),
+                                     summary.get("sim", {}).get("joint_state_period_ms_max")))),
         ("wall time", f"{summary['wall_time_s']} s ({summary['scenes_per_hour']} scenes/h)"),
         ("scenes failed / arm resets", f"{summary.get('scenes_failed', 0)} / {summary.get('resets', 0)}"),
     ]
