@@ -15,8 +15,9 @@ planner has run, or it has not answered yet) an execute waits `executor.scene_wa
 then refused with SCENE_MISSING, unless `executor.require_scene` is off (a cell without a
 planner), when motions are checked against the map alone. An execute that names a scene
 revision (its plan's, or that of a change the client just made) waits as long for that
-revision, since the planner answers a change before its scene reaches the executor. The map obeys the planner's rules:
-missing, stale (by its stamp) or incomplete maps refuse the execute as they refuse a plan.
+revision, since the planner answers a change before its scene reaches the executor. The map
+obeys the planner's rules: missing, stale (by its stamp) or incomplete maps refuse the execute
+as they refuse a plan.
 
 A map that says its inflation is planned with that clearance kept on the way and released
 near each query's start and goal, down to keeping the padded links off the seen voxels, and a

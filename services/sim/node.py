@@ -139,7 +139,7 @@ class SimNode(Node):
         ]
         self.workers = [RenderWorker(cfg, i) for i in range(len(cfg.cameras))]
 
-    # --- Zenoh callbacks (any thread; on_setpoint runs on the physics thread) -------------------
+    # --- Zenoh callbacks (any thread; on_status runs on the physics thread) ---------------------
 
     def on_status(self, sample: zenoh.Sample) -> None:
         """On the physics thread, for each status received since the last step."""
