@@ -119,13 +119,15 @@ def objects_query(client: RobonavClient, request: SimObjectsRequest) -> SimObjec
 def stream_setpoints(client: RobonavClient, cfg: RobonavConfig, q_of_t: Callable[[float], np.ndarray],
                      duration_s: float) -> None:
     """Publish setpoints at 100 Hz along q_of_t(t), like an executor would: with their velocity,
-    so the sim's driver sees them continue one another however late the next one comes."""
+    so the sim's driver sees them continue one another however late the next one comes. Each
+    setpoint's position is the one of its stamp: a sender preempted between reading two clocks
+    would stamp a position tens of milliseconds old, which the driver rightly takes for a jump."""
     key = client.keys.setpoint
-    start = time.monotonic()
-    while (t := time.monotonic() - start) < duration_s:
+    start = time.time()
+    while (t := (stamp := time.time()) - start) < duration_s:
         q = q_of_t(t)
         qd = (q_of_t(t + 1e-3) - q_of_t(max(t - 1e-3, 0.0))) / (t + 1e-3 - max(t - 1e-3, 0.0))
-        client.session.put(key, Setpoint(stamp=time.time(), trajectory_id="test", names=cfg.robot.joint_names,
+        client.session.put(key, Setpoint(stamp=stamp, trajectory_id="test", names=cfg.robot.joint_names,
                                          position=q, velocity=qd, acceleration=np.zeros(7)).to_wire())
         time.sleep(0.01)
 
