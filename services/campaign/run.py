@@ -266,10 +266,7 @@ def table(summary: dict[str, Any]) -> str:
         ("executor watchdog stops", ", ".join(f"{code} {n}" for code, n in summary.get("executor_faults", {}).items())
                                     or "0"),
         ("arm: rejected setpoints / timeouts / brakes", _driver_row(summary.get("sim", {}))),
-        ("sim: dropped s / step late max ms / joint-state gap max ms",
-         " / ".join(str(v) for v in (summary.get("sim", {}).get("dropped_time_s"),
-                                     summary.get("sim", {}).get("step_lateness_ms", {}).get("max"),
-                                     summary.get("sim", {}).get("joint_state_period_ms_max")))),
+        ("sim: dropped s / step late max ms / joint-state gap max ms", _sim_loop_row(summary.get("sim", {}))),
         ("wall time", f"{summary['wall_time_s']} s ({summary['scenes_per_hour']} scenes/h)"),
         ("scenes failed / arm resets", f"{summary.get('scenes_failed', 0)} / {summary.get('resets', 0)}"),
     ]
@@ -283,6 +280,11 @@ def _driver_row(sim: dict[str, Any]) -> str:
         return "not reported"
     reasons = ", ".join(f"{reason} {n}" for reason, n in rejected.items() if n)
     return f"{sum(rejected.values())}{f' ({reasons})' if reasons else ''} / {sim.get('setpoint_timeouts')} / {sim.get('brakes')}"
+
+
+def _sim_loop_row(sim: dict[str, Any]) -> str:
+    late_ms = sim.get("step_lateness_ms", {}).get("max")
+    return f"{sim.get('dropped_time_s')} / {late_ms} / {sim.get('joint_state_period_ms_max')}"
 
 
 def run_campaign(args: argparse.Namespace, cfg: RobonavConfig, config_path: Path, scenes: list[Scene]) -> dict[str, Any]:

@@ -10,7 +10,7 @@ import zenoh
 from robonav.services.common import open_session
 from robonav.services.config import ZenohConfig
 
-from ..conftest import free_port, wait_for  # noqa: F401 - the recording tests import it from here
+from ..conftest import free_port
 
 
 @pytest.fixture
@@ -32,4 +32,3 @@ def sessions(endpoint: str) -> Iterator[Callable[[], zenoh.Session]]:
     yield new_session
     for s in opened:
         s.close()
-

@@ -40,7 +40,7 @@ from robonav.services.client import RobonavClient
 from robonav.services.config import load_config
 from robonav.services.recording.record import Recorder
 
-from .conftest import wait_for
+from ..conftest import wait_for
 
 DEFAULT = load_config()
 ROBOT = RobotModel.from_config(DEFAULT.robot)

@@ -32,8 +32,7 @@ from robonav.services.recording.files import Recording, RecordingError, Recordin
 from robonav.services.recording.record import Recorder
 from robonav.services.recording.replay import Replayer, ReplayOptions
 
-from ..conftest import write_config
-from .conftest import wait_for
+from ..conftest import wait_for, write_config
 
 CELL = "rt"
 CLOUD_KEY = f"robonav/{CELL}/camera/cam0/cloud"

@@ -28,8 +28,7 @@ from robonav.services.recording.record import Recorder
 from robonav.services.recording.replay import Replayer, ReplayOptions, in_cell, is_robot_key
 from robonav.services.recording.writer import FLUSH_INTERVAL_S
 
-from ..conftest import free_port, write_config
-from .conftest import wait_for
+from ..conftest import free_port, wait_for, write_config
 
 CELL = "rs"
 BLOB_KEY = f"robonav/{CELL}/custom/blob"
