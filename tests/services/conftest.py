@@ -108,35 +108,23 @@ def wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
     return condition()
 
 
-def wait_until_served(session: zenoh.Session, key: str, timeout_s: float = 10.0, *, served: bool = True) -> None:
-    """Wait until `session` sees a queryable on `key` (or, with `served=False`, none): a query
-    sent right after another session declared one may reach the router before the declaration
-    does, and get no reply at all; one sent after an undeclaration may still be routed to it.
-
-    The querier is declared afresh every half second: once in a long while (one test run in
-    several) a querier kept seeing a queryable for 10 s after it was undeclared, while a new
-    querier asks the router for what is declared now."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        querier = session.declare_querier(key)
-        try:
-            renew_at = time.monotonic() + 0.5
-            while time.monotonic() < renew_at:
-                if querier.matching_status.matching == served:
-                    return
-                time.sleep(0.02)
-        finally:
-            querier.undeclare()
-        assert time.monotonic() < deadline, f"queryable on {key} still {'absent' if served else 'seen'} after {timeout_s} s"
+def wait_until_served(session: zenoh.Session, key: str, timeout_s: float = 10.0) -> None:
+    """Wait until `session` sees a queryable on `key`: a query sent right after another session
+    declared one may reach the router before the declaration does, and get no reply at all."""
+    querier = session.declare_querier(key)
+    try:
+        assert wait_for(lambda: querier.matching_status.matching, timeout_s), f"no queryable on {key} after {timeout_s} s"
+    finally:
+        querier.undeclare()
 
 
 class StandInPeer:
     """A bare queryable on `key` standing in for a service: `answer(query)` runs for each query,
     which is kept (a silent or slow peer holds its queries) and dropped by `close`, never while
     its callback still runs (the callback holds it: dropping it then raises "Already borrowed").
-    With `observer`, waits until that session sees the queryable, and on `close` until it no
-    longer does: the next stand-in on the same key must not be taken as seen because the old
-    declaration still is."""
+    With `observer`, waits until that session sees the queryable. `close` does not wait until it
+    no longer does: a querier's matching status has been seen to keep an undeclared queryable
+    for over 10 s, so each test serves one stand-in per key and bus."""
 
     def __init__(self, session: zenoh.Session, key: str, answer: Callable[[zenoh.Query], object], *,
                  observer: zenoh.Session | None = None) -> None:
@@ -148,7 +136,6 @@ class StandInPeer:
                 self.queries.append(query)
                 answer(query)
 
-        self._key, self._observer = key, observer
         self._queryable = session.declare_queryable(key, callback, complete=True)
         if observer is not None:
             wait_until_served(observer, key)
@@ -158,8 +145,6 @@ class StandInPeer:
             for query in self.queries:
                 query.drop()
             self._queryable.undeclare()
-        if self._observer is not None:
-            wait_until_served(self._observer, self._key, served=False)
 
 
 @pytest.fixture

@@ -104,15 +104,15 @@ def test_an_ordinary_reply_that_is_not_the_message_is_query_failed(bus: tuple[ze
     peer.close()
 
 
+@pytest.mark.parametrize("as_error", [True, False])
 def test_an_error_map_is_an_error_reply_as_an_error_or_as_an_ordinary_reply(
-        bus: tuple[zenoh.Session, zenoh.Session]) -> None:
+        bus: tuple[zenoh.Session, zenoh.Session], as_error: bool) -> None:
     _, client = bus
-    for send in (lambda q: q.reply_err(_error_map("NO_JOINT_STATE")),
-                 lambda q: q.reply(q.key_expr, _error_map("NO_JOINT_STATE"))):
-        peer = _serve(bus, send)
-        reply = _ask(client, timeout_s=5.0)
-        assert isinstance(reply, ErrorReply) and reply.code == "NO_JOINT_STATE" and reply.details == {"key": "x"}
-        peer.close()
+    payload = _error_map("NO_JOINT_STATE")
+    peer = _serve(bus, (lambda q: q.reply_err(payload)) if as_error else (lambda q: q.reply(q.key_expr, payload)))
+    reply = _ask(client, timeout_s=5.0)
+    assert isinstance(reply, ErrorReply) and reply.code == "NO_JOINT_STATE" and reply.details == {"key": "x"}
+    peer.close()
 
 
 def test_an_unknown_code_is_internal_error_keeping_the_code(bus: tuple[zenoh.Session, zenoh.Session]) -> None:
