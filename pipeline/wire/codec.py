@@ -186,7 +186,7 @@ def _field_plan(cls: type) -> tuple[tuple[tuple[str, bool, _Decoder], ...], froz
     return tuple(plan), frozenset(name for name, _, _ in plan)
 
 
-def _drop_ignorable(obj: dict[str, Any], known: set[str], owner: str, prefix: str) -> dict[str, Any]:
+def _drop_ignorable(obj: dict[str, Any], known: frozenset[str], owner: str, prefix: str) -> dict[str, Any]:
     """The compatibility rule (docs/protocol.md, "Versions"): a map may list in `ignorable` keys
     a receiver that does not know them may ignore, so a newer peer's added optional keys do not
     break an older one. A listed key this side knows is decoded and checked as ever; an unknown
