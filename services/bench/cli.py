@@ -1,4 +1,4 @@
-"""`robonav bench KIND`: plan (MotionBenchMaker), executor, perception, record, faults.
+"""`robonav bench KIND`: plan (MotionBenchMaker), executor, perception, record, faults, wire.
 
 Each kind lives in its own module with an `add_parser(kinds)` and a `main(args)`; `robonav view
 bench` is `bench/view.py`, reached through `robonav view`.
@@ -10,10 +10,10 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from robonav.services.bench import executor, perception, plan, record
+from robonav.services.bench import executor, perception, plan, record, wire
 from robonav.services.bench.faults import run as faults
 
-KINDS = {"plan": plan, "executor": executor, "perception": perception, "record": record, "faults": faults}
+KINDS = {"plan": plan, "executor": executor, "perception": perception, "record": record, "faults": faults, "wire": wire}
 
 
 def parse_args(argv: Sequence[str]) -> argparse.Namespace:
