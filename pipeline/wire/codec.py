@@ -364,8 +364,7 @@ def _decode_dataclass(tp: type, value: Any, key: str, owner: str) -> Any:
     value = _drop_ignorable(value, names, owner, f"{key}.")
     if set(value) - names or names - set(value):
         raise ProtocolError(ErrorCode.MALFORMED_MESSAGE, f"{owner}: '{key}' must have exactly the keys {sorted(names)}", {"key": key})
-    decoders = {name: decode for name, _, decode in plan}
-    fields = {k: decoders[k](v, f"{key}.{k}", owner) for k, v in value.items()}
+    fields = {name: decode(value[name], f"{key}.{name}", owner) for name, _, decode in plan}
     try:
         return tp(**fields)
     except (ValueError, TypeError, ArithmeticError) as exc:
