@@ -202,6 +202,11 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance, Atta
         """Leaf size of the current map [m]; 0 without one."""
         return self._octree_resolution_m
 
+    def build_exact_shapes(self) -> None:
+        """Build the exact link geometry contacts are confirmed on (`ExactLinkShapes.build`) now,
+        for a service's warm-up; otherwise each shape is built at its link's first contact."""
+        self._exact.build()
+
     def clear_octree(self) -> None:
         self._revision += 1
         self._octree = None

@@ -106,7 +106,9 @@ class ExecuteCheck:
                                                guarded_subscriber(self.on_scene_state, "executor"))
 
     def _warm_up(self, robot: RobotModel) -> None:
-        """FCL's first octree query in a process takes about half a second: pay it now, not in an execute."""
+        """FCL's first octree query in a process takes about half a second, and each exact link mesh
+        tens of milliseconds: pay them now, not in an execute."""
+        self._world.build_exact_shapes()
         tree = octomap.OcTree(0.02)
         tree.updateNode(robot.frame_pose(robot.home_position_rad, robot.config.end_effector_link)[:3, 3], True)
         self._world.set_octree(tree.writeBinary(), 0.02)

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from robonav.pipeline.collision import fcl_shapes
 from robonav.pipeline.collision.fcl_shapes import link_shape_geometry
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.evaluation.mesh_check import MeshCollisionChecker
@@ -86,3 +87,17 @@ def test_exact_geometry_is_built_once_per_shape(tmp_path: Path) -> None:
     worlds = [CollisionWorld(robot, padding_m=0.0) for _ in range(2)]
     for world in worlds:
         assert world.in_collision(np.array([0.0, -0.12])) and not world.in_collision(np.array([0.0, 0.0]))
+
+
+def test_a_warm_up_builds_every_exact_shape_so_a_first_contact_builds_none(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    robot = _ell_robot(tmp_path)
+    built: list[str] = []
+    build = fcl_shapes._link_shape_geometry
+    monkeypatch.setattr(fcl_shapes, "_link_shape_geometry", lambda shape: built.append(shape.link) or build(shape))
+    world = CollisionWorld(robot, padding_m=0.0)
+    world.build_exact_shapes()
+    assert sorted(built) == sorted(s.link for link in robot.collision_link_names for s in robot.link_collision_shapes[link])
+    world.build_exact_shapes()
+    assert world.collisions(np.array([0.0, -0.12]), padded=False) == [("ell", "cube")]  # confirmed on the exact shapes
+    assert len(built) == len(set(built)) == 3, "nothing was built twice or after the warm-up"
