@@ -56,6 +56,11 @@ class ExecutorConfig:
     it stops the arm (and replans when the request asks for it)."""
     path_check_rate_hz: float = 10.0
     """The rest of the path is re-checked at least this often (and on every new map) [Hz]."""
+    max_map_age_s: float = 1.0
+    """While a monitored path executes and maps are required (`planner.require_occupancy`), the
+    newest map's frames may be at most this old [s]. Older, the path guard cannot see what came
+    since (perception lags or is gone), and the arm stops as for a block: it replans when the
+    request asks for it, else OCCUPANCY_STALE. 0: no limit."""
     replan_attempts: int = 3
     """Default plans per execute request after blocks (ExecuteRequest.replan_attempts)."""
     replan_timeout_s: float = 10.0
@@ -87,6 +92,7 @@ class ExecutorConfig:
                 f"executor.cpu_affinity must list CPUs in [0, {cpus - 1}], got {list(self.cpu_affinity)}")
         require(0 < self.command_lead_s <= 0.5, f"executor.command_lead_s must be in (0, 0.5], got {self.command_lead_s}")
         require(self.path_check_rate_hz > 0, f"executor.path_check_rate_hz must be > 0, got {self.path_check_rate_hz}")
+        require(self.max_map_age_s >= 0, f"executor.max_map_age_s must be >= 0, got {self.max_map_age_s}")
         require(self.replan_attempts >= 1, f"executor.replan_attempts must be >= 1, got {self.replan_attempts}")
         require(self.replan_timeout_s > 0, f"executor.replan_timeout_s must be > 0, got {self.replan_timeout_s}")
         require(self.replan_delay_s >= 0, f"executor.replan_delay_s must be >= 0, got {self.replan_delay_s}")

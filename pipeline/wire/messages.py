@@ -410,7 +410,8 @@ class ExecutorStatus(Message):
     last_result: ExecutionResult = ExecutionResult.NONE
     """Outcome of the last trajectory: none, succeeded, stopped, aborted."""
     error_code: str = ""
-    """An `ErrorCode` value in state `error` (JOINT_STATE_STALE, TRACKING_ERROR, PATH_BLOCKED), else ""."""
+    """An `ErrorCode` value in state `error` (JOINT_STATE_STALE, TRACKING_ERROR, PATH_BLOCKED,
+    OCCUPANCY_STALE), else ""."""
     error_message: str = ""
     replans: int = 0
     """New paths planned for this trajectory id after its path was blocked."""

@@ -4,8 +4,10 @@ and a replan when a new obstacle blocks it.
 A thread of the executor's process checks the rest of the path on every map and at
 `executor.path_check_rate_hz`: a new obstacle on it stops the arm smoothly, then either ends the
 execution with PATH_BLOCKED or, when the request asked to replan, asks the planner for a new
-path from the rest state to the same goal and continues under the same trajectory id. It works
-on the node's state machine under the node's lock (`ExecutorNode` owns both).
+path from the rest state to the same goal and continues under the same trajectory id. A map
+older than `executor.max_map_age_s` stops the arm the same way (OCCUPANCY_STALE without a
+replan): the guard cannot see what moved in since its frames. It works on the node's state
+machine under the node's lock (`ExecutorNode` owns both).
 
 Every voxel the rest of the path touches is watched. The execute check (`execute_check.py`)
 verified the whole motion against one map before it started, the baseline here: its voxels are
@@ -115,6 +117,7 @@ class PathMonitor:
                             self._guard.update_map(occupancy.occupied_centers_m, occupancy.resolution_m)
                     if occupancy is not None:
                         self._check_rest_of_path(execution, commanded[0], occupancy)
+                        self._check_map_age(execution, occupancy)
             except Exception:  # noqa: BLE001 - the monitor must outlive any one bad check
                 log.exception("path monitor: check failed")
 
@@ -125,23 +128,48 @@ class PathMonitor:
         blocked_at = self._guard.blocked_state(execution.path, q_commanded, allowance_radius_rad=allowance_rad)
         if blocked_at is None:
             return
+        blocked_stamp = time.time()
+        delay_s = blocked_stamp - occupancy.stamp
+        outcome = self._halt(execution, ErrorCode.PATH_BLOCKED,
+                             f"a new obstacle blocks the rest of '{execution.trajectory_id}' (map {occupancy.seq})",
+                             blocked_stamp=blocked_stamp, delay_s=delay_s)
+        if outcome is not None:
+            log.warning("%s: the rest of the path is blocked in map %d, %.0f ms after its newest frame: %s",
+                        execution.trajectory_id, occupancy.seq, delay_s * 1e3, outcome)
+
+    def _check_map_age(self, execution: Execution, occupancy: Occupancy) -> None:
+        """Stop a motion the guard watches on maps older than `executor.max_map_age_s`: whatever
+        moved in since their frames is unseen (perception lags behind a busy machine, or is gone)."""
+        cfg = self._node.cfg
+        limit_s = cfg.executor.max_map_age_s
+        age_s = time.time() - occupancy.stamp
+        if limit_s <= 0 or not cfg.planner.require_occupancy or age_s <= limit_s:
+            return
+        outcome = self._halt(execution, ErrorCode.OCCUPANCY_STALE,
+                             f"the newest map (map {occupancy.seq}) is {age_s:.2f} s old, more than "
+                             f"executor.max_map_age_s ({limit_s:g} s), while '{execution.trajectory_id}' moves")
+        if outcome is not None:
+            log.warning("%s: the newest map (map %d) is %.0f ms old, more than executor.max_map_age_s: %s",
+                        execution.trajectory_id, occupancy.seq, age_s * 1e3, outcome)
+
+    def _halt(self, execution: Execution, code: ErrorCode, message: str, *, blocked_stamp: float | None = None,
+              delay_s: float | None = None) -> str | None:
+        """Brake `execution` like a normal stop, to replan when it may, else to a fault with
+        `code`; what was done, or None when it was preempted or stopped meanwhile."""
         with self._node._lock:
             if self._node._execution is not execution or self._node.machine.state is not ExecutionState.EXECUTING:
-                return  # preempted or stopped meanwhile
-            self._node._blocked_stamp = time.time()
-            delay_s = self._node._blocked_stamp - occupancy.stamp
-            self._node._blocked_after_frame_s = delay_s
+                return None
+            if blocked_stamp is not None:
+                self._node._blocked_stamp, self._node._blocked_after_frame_s = blocked_stamp, delay_s
             if execution.replan and execution.replans_left > 0:
                 self._node.machine.stop(self._node._switch_time(), scaling=self._node.cfg.executor.acceleration_scaling, replan=True)
                 outcome = "stopping to replan"
             else:
-                self._node.machine.fault(self._node._switch_time(), ErrorCode.PATH_BLOCKED,
-                                   f"a new obstacle blocks the rest of '{execution.trajectory_id}' "
-                                   f"(map {occupancy.seq}){'; no replans left' if execution.replan else ''}")
+                self._node.machine.fault(self._node._switch_time(), code,
+                                         f"{message}{'; no replans left' if execution.replan else ''}")
                 outcome = "stopping (replan not requested)" if not execution.replan else "stopping (no replans left)"
             self._node._stream_latest()
-        log.warning("%s: the rest of the path is blocked in map %d, %.0f ms after its newest frame: %s",
-                    execution.trajectory_id, occupancy.seq, delay_s * 1e3, outcome)
+        return outcome
 
     def _replan(self, execution: Execution) -> None:
         """At rest after a block: plan from here to the goal and stream the new path, or give up.

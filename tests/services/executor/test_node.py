@@ -468,3 +468,46 @@ def test_replanning_ends_in_path_blocked_whatever_the_planner_does(
         timer.join()
     planner.close()
     publisher.undeclare()
+
+
+LONG_SWING = _path(HOME, [2.0, 0, 0, 0, 0, 0, 0])  # the hand sweeps far from FAR
+
+
+@pytest.mark.parametrize("maps_keep_coming", [False, True], ids=["maps stop coming", "maps keep coming"])
+def test_a_motion_watched_on_maps_that_stop_coming_stops_with_occupancy_stale(
+        executor: tuple[ExecutorNode, RobonavClient, FakeRobot], maps_keep_coming: bool) -> None:
+    """Perception lags or is gone: the path guard would watch the motion on a map that shows
+    less and less of the present, so the arm stops once that map is `max_map_age_s` old; with
+    fresh maps arriving the same motion ends at its goal."""
+    node, client, robot = executor
+    node.cfg = dataclasses.replace(node.cfg, executor=dataclasses.replace(node.cfg.executor, max_map_age_s=0.5),
+                                   planner=dataclasses.replace(node.cfg.planner, require_occupancy=True))
+    publisher = declare_latched_publisher(client.session, client.keys.occupancy)
+    publisher.put(_map_with_cubes(FAR, stamp=time.time()))
+    assert client.wait_for(lambda: node.maps.newest() is not None, 5.0)
+    done = threading.Event()
+
+    def keep_mapping() -> None:
+        while not done.wait(0.1):
+            publisher.put(_map_with_cubes(FAR, stamp=time.time()))
+
+    mapper = threading.Thread(target=keep_mapping, daemon=True)
+    if maps_keep_coming:
+        mapper.start()
+    try:
+        reply = client.execute(LONG_SWING, trajectory_id="watched")
+        assert isinstance(reply, ExecuteResponse), reply
+        assert reply.duration_s > 1.2, "the motion must outlast the map age limit"
+        outcome = client.wait_for_trajectory("watched", reply.duration_s + 5.0)
+    finally:
+        done.set()
+    status = client.status
+    assert status is not None and status.trajectory_id == "watched"
+    if maps_keep_coming:
+        assert outcome == "succeeded" and status.error_code == "", status
+        assert np.allclose(robot.setpoints[-1].position, LONG_SWING[-1], atol=1e-6)
+    else:
+        assert (status.state, status.error_code) == ("error", "OCCUPANCY_STALE"), status
+        assert "max_map_age_s" in status.error_message, status
+        assert abs(robot.setpoints[-1].position[0] - LONG_SWING[-1][0]) > 0.2, "stopped short of the goal"
+        _assert_continuous(robot.setpoints)
