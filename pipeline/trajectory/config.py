@@ -56,7 +56,7 @@ class ExecutorConfig:
     it stops the arm (and replans when the request asks for it)."""
     path_check_rate_hz: float = 10.0
     """The rest of the path is re-checked at least this often (and on every new map) [Hz]."""
-    max_map_age_s: float = 1.0
+    max_map_age_s: float = 2.0
     """While a monitored path executes and maps are required (`planner.require_occupancy`), the
     newest map's frames may be at most this old [s]. Older, the path guard cannot see what came
     since (perception lags or is gone), and the arm stops as for a block: it replans when the
