@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -60,6 +61,38 @@ MOVING_SPEED_FACTOR = 0.5
 """A moving scene's goal is driven at this share of the campaign's speed by default: at full speed most
 paths take under 3 s, and few leave a place where the box can rest 1.7 s in (slide and lead)
 that the arm reaches later and that is not beside the goal."""
+
+
+def jog(client: RobonavClient, goal_rad: np.ndarray, continuous_mask: np.ndarray, *, trajectory_id: str,
+        timeout_s: float, settle: Callable[[], object], attempts: int = MAX_ATTEMPTS) -> bool:
+    """Drive the arm straight to `goal_rad` in joint space, unplanned; whether it got there.
+
+    The executor still watches the motion, so a stop (a stale map, a voxel of noise) ends it short
+    of the goal: the jog goes on from where the arm stopped, after `settle` (a fresh map), as
+    does an execute refused for a reason a fresher map or state can clear (`RETRYABLE`)."""
+    def error_rad() -> float:
+        assert client.joint_state is not None
+        return float(np.max(joint_distance_rad(client.joint_state.position, goal_rad, continuous_mask)))
+
+    for attempt in range(attempts):
+        if error_rad() <= HOME_TOLERANCE_RAD:
+            return True
+        if attempt > 0:
+            settle()
+        assert client.joint_state is not None
+        execution = client.execute(np.vstack([client.joint_state.position, goal_rad]),
+                                   trajectory_id=f"{trajectory_id}-{attempt}")
+        if isinstance(execution, ErrorReply):
+            log.warning("jog %s: execute refused: %s: %s", trajectory_id, execution.code, execution.message)
+            if execution.code not in RETRYABLE:
+                return False
+            continue
+        outcome = client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + timeout_s)
+        if outcome == "succeeded":
+            client.wait_for(lambda: error_rad() <= HOME_TOLERANCE_RAD, 2.0)  # the joint state catches up
+        else:
+            log.warning("jog %s: attempt %d ended %s", trajectory_id, attempt, outcome)
+    return error_rad() <= HOME_TOLERANCE_RAD
 
 
 @dataclass
@@ -201,11 +234,8 @@ class SceneRunner:
         # says (an operator jogging the arm in an empty cell). Counted: it bypasses the planner.
         self.resets += 1
         log.warning("jogging the arm home in the empty world (reset %d)", self.resets)
-        execution = self.client.execute(np.vstack([self._q(), self.home]), trajectory_id=f"campaign-reset-{self.resets}")
-        if isinstance(execution, ErrorReply):
-            raise RuntimeError(f"could not bring the arm home: {execution.code}: {execution.message}")
-        self.client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + self.cfg.demo.goal_timeout_s)
-        if self._error_rad(self.home) > HOME_TOLERANCE_RAD:
+        if not jog(self.client, self.home, self.robot.continuous_mask, trajectory_id=f"campaign-reset-{self.resets}",
+                   timeout_s=self.cfg.demo.goal_timeout_s, settle=lambda: self.maps.wait_settled(time.time())):
             raise RuntimeError("could not bring the arm home")
 
     def run(self, index: int, scene: Scene, *, moving: bool, rng: np.random.Generator) -> dict[str, Any]:
