@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,6 +35,7 @@ from robonav.pipeline.wire.messages import (
     SimObjectsResponse,
 )
 from robonav.services.campaign.intruder import INTRUDER_SLIDE_S, IntruderPlacer
+from robonav.services.campaign.jog import jog
 from robonav.services.campaign.maps import CampaignMaps
 from robonav.services.client import QueryFailed, RobonavClient, trajectory_outcome
 from robonav.services.config import RobonavConfig
@@ -61,38 +61,6 @@ MOVING_SPEED_FACTOR = 0.5
 """A moving scene's goal is driven at this share of the campaign's speed by default: at full speed most
 paths take under 3 s, and few leave a place where the box can rest 1.7 s in (slide and lead)
 that the arm reaches later and that is not beside the goal."""
-
-
-def jog(client: RobonavClient, goal_rad: np.ndarray, continuous_mask: np.ndarray, *, trajectory_id: str,
-        timeout_s: float, settle: Callable[[], object], attempts: int = MAX_ATTEMPTS) -> bool:
-    """Drive the arm straight to `goal_rad` in joint space, unplanned; whether it got there.
-
-    The executor still watches the motion, so a stop (a stale map, a voxel of noise) ends it short
-    of the goal: the jog goes on from where the arm stopped, after `settle` (a fresh map), as
-    does an execute refused for a reason a fresher map or state can clear (`RETRYABLE`)."""
-    def error_rad() -> float:
-        assert client.joint_state is not None
-        return float(np.max(joint_distance_rad(client.joint_state.position, goal_rad, continuous_mask)))
-
-    for attempt in range(attempts):
-        if error_rad() <= HOME_TOLERANCE_RAD:
-            return True
-        if attempt > 0:
-            settle()
-        assert client.joint_state is not None
-        execution = client.execute(np.vstack([client.joint_state.position, goal_rad]),
-                                   trajectory_id=f"{trajectory_id}-{attempt}")
-        if isinstance(execution, ErrorReply):
-            log.warning("jog %s: execute refused: %s: %s", trajectory_id, execution.code, execution.message)
-            if execution.code not in RETRYABLE:
-                return False
-            continue
-        outcome = client.wait_for_trajectory(execution.trajectory_id, execution.duration_s + timeout_s)
-        if outcome == "succeeded":
-            client.wait_for(lambda: error_rad() <= HOME_TOLERANCE_RAD, 2.0)  # the joint state catches up
-        else:
-            log.warning("jog %s: attempt %d ended %s", trajectory_id, attempt, outcome)
-    return error_rad() <= HOME_TOLERANCE_RAD
 
 
 @dataclass
@@ -235,7 +203,8 @@ class SceneRunner:
         self.resets += 1
         log.warning("jogging the arm home in the empty world (reset %d)", self.resets)
         if not jog(self.client, self.home, self.robot.continuous_mask, trajectory_id=f"campaign-reset-{self.resets}",
-                   timeout_s=self.cfg.demo.goal_timeout_s, settle=lambda: self.maps.wait_settled(time.time())):
+                   timeout_s=self.cfg.demo.goal_timeout_s, settle=lambda: self.maps.wait_settled(time.time()),
+                   tolerance_rad=HOME_TOLERANCE_RAD, retryable=RETRYABLE, attempts=MAX_ATTEMPTS):
             raise RuntimeError("could not bring the arm home")
 
     def run(self, index: int, scene: Scene, *, moving: bool, rng: np.random.Generator) -> dict[str, Any]:

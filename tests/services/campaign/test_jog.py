@@ -11,7 +11,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse
-from robonav.services.campaign.scene import HOME_TOLERANCE_RAD, jog
+from robonav.services.campaign.jog import jog
+from robonav.services.campaign.scene import HOME_TOLERANCE_RAD, RETRYABLE
 
 HOME = np.zeros(3)
 NOT_CONTINUOUS = np.zeros(3, dtype=bool)
@@ -54,7 +55,8 @@ class Arm:
 def run(arm: Arm, attempts: int = 4) -> tuple[bool, int]:
     settles = []
     reached = jog(arm, HOME, NOT_CONTINUOUS, trajectory_id="reset-1", timeout_s=1.0,
-                  settle=lambda: settles.append(1), attempts=attempts)
+                  settle=lambda: settles.append(1), tolerance_rad=HOME_TOLERANCE_RAD,
+                  retryable=RETRYABLE, attempts=attempts)
     return reached, len(settles)
 
 
