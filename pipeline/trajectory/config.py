@@ -45,6 +45,13 @@ class ExecutorConfig:
     command_lead_s: float = 0.01
     """A new trajectory (execute, stop, replan) takes over this long after the command: the time
     to sample it and hand it to the setpoint stream's process, so the switch is exact [s]."""
+    start_dwell_s: float = 0.1
+    """A motion from rest first streams its start, at rest, this long [s]. A driver in hold
+    takes a first setpoint only if a motion from where it holds could have reached it since it
+    last looked (Franka's FCI, the sim's driver): setpoints that reach it late and bunched (a
+    busy host, a router) would otherwise show it one already 30-40 ms into the motion, which it
+    refuses while the arm stays put until the tracking watchdog stops the motion. Once it
+    follows the setpoints at rest, their stamps tell it how much time passed."""
     require_scene: bool = True
     """Refuse an execute (SCENE_MISSING) while no planner's scene (`planner/scene_state`) has
     arrived: the executor checks every motion against the planner's objects, and without them
@@ -91,6 +98,7 @@ class ExecutorConfig:
         require(all(isinstance(c, int) and 0 <= c < cpus for c in self.cpu_affinity),
                 f"executor.cpu_affinity must list CPUs in [0, {cpus - 1}], got {list(self.cpu_affinity)}")
         require(0 < self.command_lead_s <= 0.5, f"executor.command_lead_s must be in (0, 0.5], got {self.command_lead_s}")
+        require(0 <= self.start_dwell_s <= 1.0, f"executor.start_dwell_s must be in [0, 1], got {self.start_dwell_s}")
         require(self.path_check_rate_hz > 0, f"executor.path_check_rate_hz must be > 0, got {self.path_check_rate_hz}")
         require(self.max_map_age_s >= 0, f"executor.max_map_age_s must be >= 0, got {self.max_map_age_s}")
         require(self.replan_attempts >= 1, f"executor.replan_attempts must be >= 1, got {self.replan_attempts}")

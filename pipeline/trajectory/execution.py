@@ -23,7 +23,7 @@ import numpy as np
 from robonav.pipeline.trajectory.blending import blend_from_state
 from robonav.pipeline.trajectory.config import ExecutorConfig
 from robonav.pipeline.trajectory.stopping import stop_trajectory
-from robonav.pipeline.trajectory.trajectory import JointTrajectory, TrajectoryLimits
+from robonav.pipeline.trajectory.trajectory import JointTrajectory, TrajectoryLimits, with_start_dwell
 from robonav.pipeline.types import FloatArray
 from robonav.pipeline.wire.codes import ErrorCode, ExecutionResult, ExecutionState
 
@@ -118,7 +118,8 @@ class ExecutionStateMachine:
         first row). Commanded states, stops and status follow from now on."""
         self._started_at_s += delay_s
 
-    def start(self, trajectory: JointTrajectory, trajectory_id: str, now_s: float, *, replanned: bool = False) -> bool:
+    def start(self, trajectory: JointTrajectory, trajectory_id: str, now_s: float, *, replanned: bool = False,
+              start_dwell_s: float = 0.0) -> bool:
         """Stream `trajectory` from `now_s`; while moving, blend into it from the commanded state.
 
         Args:
@@ -128,6 +129,9 @@ class ExecutionStateMachine:
             trajectory_id: Names it in setpoints and status.
             now_s: Current time on the caller's clock [s].
             replanned: A new path to the same goal after `replanning` (counted in `replans`).
+            start_dwell_s: A motion from rest first stands this long at its start [s]
+                (`executor.start_dwell_s`): setpoints at rest the driver takes up before the
+                first moving one (see `ExecutorConfig.start_dwell_s`).
 
         Returns:
             True when it preempted a moving trajectory.
@@ -141,6 +145,7 @@ class ExecutionStateMachine:
             # and its old setpoints would trip the watchdog before the first new one is sent.
             self._recent_q.clear()
             self._recent_t.clear()
+            trajectory = with_start_dwell(trajectory, start_dwell_s)
         self._trajectory = trajectory
         self._started_at_s = now_s
         self.revision += 1

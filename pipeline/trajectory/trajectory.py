@@ -108,7 +108,8 @@ class JointPiece:
 
 @dataclass(frozen=True)
 class HoldPiece:
-    """Standing still at q for zero time (a path whose waypoints all coincide)."""
+    """Standing still at q: for zero time (a path whose waypoints all coincide), or for the dwell
+    before a motion from rest (`with_start_dwell`)."""
 
     q: FloatArray
     duration_s: float = 0.0
@@ -252,6 +253,23 @@ class JointTrajectory:
             times[-1] = self._duration_s
         q, qd, qdd = self.sample_many(times)
         return times, q, qd, qdd
+
+
+def with_start_dwell(trajectory: JointTrajectory, dwell_s: float) -> JointTrajectory:
+    """`trajectory` preceded by `dwell_s` at rest where it starts (its waypoint times moved with it).
+
+    Raises:
+        ValueError: `dwell_s` negative or not finite.
+    """
+    if not (math.isfinite(dwell_s) and dwell_s >= 0):
+        raise ValueError(f"dwell_s must be a finite number >= 0, got {dwell_s}")
+    if dwell_s == 0:
+        return trajectory
+    start_q = trajectory.sample(0.0)[0]
+    times = trajectory.waypoint_times_s
+    return JointTrajectory([HoldPiece(start_q, float(dwell_s)), *trajectory.pieces], trajectory.dof,
+                           limits=trajectory.limits, max_path_deviation_rad=trajectory.max_path_deviation_rad,
+                           waypoint_times_s=None if times is None else times + dwell_s)
 
 
 def validate_joint_vector(values: npt.ArrayLike, name: str, dof: int, *, positive: bool = False) -> FloatArray:

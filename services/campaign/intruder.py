@@ -12,6 +12,7 @@ from robonav.pipeline.sim.config import SimConfig
 from robonav.pipeline.sim.goals import Intruder, intruder_for_trajectory
 from robonav.pipeline.sim.world import SimWorld
 from robonav.pipeline.trajectory.timing import time_parameterize
+from robonav.pipeline.trajectory.trajectory import with_start_dwell
 from robonav.services.config import RobonavConfig
 
 INTRUDER_SLIDE_S = 0.5
@@ -44,14 +45,14 @@ class IntruderPlacer:
 
     def place(self, path: np.ndarray, velocity_scaling: float, acceleration_scaling: float) -> Intruder | None:
         """Where a box can slide onto `path` as the arm starts (timed with the executor's own
-        parameterization at these scalings), resting on the way, not within the goal margin of
-        the arm at the goal, early enough to avoid, and where a camera sees it
-        (`INTRUDER_MIN_PIXELS`) past the scene and the arm as it comes to rest."""
-        trajectory = time_parameterize(
+        parameterization at these scalings, its dwell at the start included), resting on the way,
+        not within the goal margin of the arm at the goal, early enough to avoid, and where a
+        camera sees it (`INTRUDER_MIN_PIXELS`) past the scene and the arm as it comes to rest."""
+        trajectory = with_start_dwell(time_parameterize(
             path, max_velocity=self.robot.velocity_limits, max_acceleration=self.robot.acceleration_limits,
             max_jerk=self.robot.jerk_limits, velocity_scaling=velocity_scaling,
             acceleration_scaling=acceleration_scaling,
-            max_path_deviation_rad=self.cfg.executor.max_path_deviation_rad)
+            max_path_deviation_rad=self.cfg.executor.max_path_deviation_rad), self.cfg.executor.start_dwell_s)
         times, q, _, _ = trajectory.sample_uniform(0.05)
         at_rest = q[min(int(np.searchsorted(times, INTRUDER_SLIDE_S)), len(q) - 1)]
 

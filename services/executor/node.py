@@ -186,7 +186,8 @@ class ExecutorNode(Node):
                                         f"path starts {offset:.3f} rad from the commanded state of the moving arm "
                                         f"(tolerance {self.cfg.executor.preempt_tolerance_rad} rad)", {"offset_rad": offset})
             # One ruckig blend from the commanded state (tens of microseconds) under the lock.
-            preempted = self.machine.start(trajectory, trajectory_id, switch_s)
+            preempted = self.machine.start(trajectory, trajectory_id, switch_s,
+                                           start_dwell_s=self.cfg.executor.start_dwell_s)
             self._stream_latest()
             duration_s = self.machine.status(switch_s).duration_s
             self._generation += 1

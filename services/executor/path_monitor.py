@@ -261,12 +261,13 @@ class PathMonitor:
         with self._node._lock:
             if self._node._execution is not execution or self._node.machine.state is not ExecutionState.REPLANNING:
                 return False  # a new request or a stop came in while planning
-            self._node.machine.start(trajectory, execution.trajectory_id, self._node._switch_time(), replanned=True)
+            self._node.machine.start(trajectory, execution.trajectory_id, self._node._switch_time(), replanned=True,
+                                     start_dwell_s=self._node.cfg.executor.start_dwell_s)
             self._node._stream_latest()
             self._node._generation += 1
             self._node._execution = dataclasses.replace(execution, path=path, replans_left=replans_left,
                                                         generation=self._node._generation, baseline_map=checked.occupancy)
-            duration_s = trajectory.duration_s
+            duration_s = self._node.machine.trajectory.duration_s  # type: ignore[union-attr]  # with its dwell
         log.info("%s: replanned (%d waypoints, %.2f s)", execution.trajectory_id, len(path), duration_s)
         self._node._path_pub.put(ExecutorPath(stamp=time.time(), trajectory_id=execution.trajectory_id,
                                         joint_names=self._node.robot.joint_names, path=path, duration_s=duration_s).to_wire())

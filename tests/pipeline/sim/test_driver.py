@@ -7,6 +7,7 @@ import pytest
 
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.sim.driver import DriverLimits, DriverState, SetpointFollower
+from robonav.pipeline.trajectory.execution import ExecutionStateMachine, Limits
 from robonav.pipeline.trajectory.timing import time_parameterize
 from robonav.services.config import load_config
 
@@ -172,3 +173,33 @@ def test_a_late_setpoint_then_an_on_time_one_is_the_networks_delay_not_a_jump() 
     ahead = t + late_s + 0.1
     rejection = follower.offer(*_at(ahead), 1000.0 + ahead, t + late_s + STEP_S, _at(t)[:2])
     assert rejection is not None and rejection.reason == "jump"
+
+
+@pytest.mark.parametrize("dwell_s", [0.0, 0.1])
+def test_a_motion_from_rest_with_its_dwell_is_followed_though_its_first_moving_setpoints_come_late(dwell_s: float) -> None:
+    """The executor's motion from rest (`start_dwell_s`) against a router that holds back its
+    first 40 ms of moving setpoints and hands them over in a bunch: without the dwell the driver,
+    in hold, sees a first setpoint 40 ms into the motion and refuses it; with it, it follows the
+    setpoints at rest first and then judges the bunch by stamps."""
+    machine = ExecutionStateMachine(Limits(ROBOT.velocity_limits, ROBOT.acceleration_limits, ROBOT.jerk_limits))
+    machine.start(TRAJECTORY, "from-rest", now_s=0.0, start_dwell_s=dwell_s)
+    follower = _follower()
+    held_back = (dwell_s, dwell_s + 0.04)  # setpoints stamped in here arrive at its end
+    follower.tick(-STEP_S, (HOME, np.zeros(7)))
+    rejections = []
+    t = 0.0
+    while t < dwell_s + 0.3:
+        if not held_back[0] <= t < held_back[1]:
+            sample = machine.tick(t)
+            assert sample is not None
+            rejection = follower.offer(sample.position, sample.velocity, sample.acceleration, 1000.0 + t, t,
+                                       (HOME, np.zeros(7)))
+            rejections.append(rejection)
+        follower.tick(t, (HOME, np.zeros(7)))
+        t += STEP_S
+    if dwell_s == 0.0:
+        assert rejections[0] is not None and rejections[0].reason == "jump"
+        assert follower.counters.followed == 0  # the arm stays put: the commander's tracking watchdog stops it
+    else:
+        assert rejections == [None] * len(rejections) and follower.counters.brakes == 0
+        assert follower.state is DriverState.FOLLOWING

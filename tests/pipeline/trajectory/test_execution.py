@@ -115,6 +115,33 @@ def test_preemption_blends_from_the_commanded_state() -> None:
     np.testing.assert_array_equal(samples[-1].position, new_path[-1])
 
 
+def test_a_motion_from_rest_stands_at_its_start_for_the_dwell_and_a_preemption_does_not() -> None:
+    machine = ExecutionStateMachine(LIMITS)
+    trajectory = _trajectory()
+    machine.start(trajectory, "a", now_s=5.0, start_dwell_s=0.1)
+    assert machine.status(5.0).duration_s == pytest.approx(trajectory.duration_s + 0.1)
+    for t in (5.0, 5.05, 5.1 - 1e-9):
+        sample = machine.tick(t)
+        assert sample is not None
+        np.testing.assert_array_equal(sample.position, PATH[0])
+        assert not np.any(sample.velocity) and not np.any(sample.acceleration)
+    for offset_s in (0.0, 0.01, 0.3):  # then the motion, on its own time
+        sample = machine.tick(5.1 + offset_s)
+        assert sample is not None
+        for got, want in zip((sample.position, sample.velocity, sample.acceleration), trajectory.sample(offset_s)):
+            np.testing.assert_allclose(got, want, atol=1e-12)
+    waypoint_times = machine.trajectory.waypoint_times_s  # type: ignore[union-attr]
+    np.testing.assert_allclose(waypoint_times, trajectory.waypoint_times_s + 0.1)  # type: ignore[operator]
+    moving = machine.tick(5.5)
+    assert moving is not None and np.abs(moving.velocity).max() > 0.1
+    assert machine.start(trajectory, "b", now_s=5.5, start_dwell_s=0.1) is True  # a blend: no standing still
+    after = machine.tick(5.5)
+    assert after is not None
+    _assert_continuous(moving, after)
+    with pytest.raises(ValueError, match="dwell_s"):
+        ExecutionStateMachine(LIMITS).start(trajectory, "c", now_s=0.0, start_dwell_s=-0.1)
+
+
 def test_a_delayed_start_moves_the_machines_clock_with_it() -> None:
     machine = ExecutionStateMachine(LIMITS)
     trajectory = _trajectory()
