@@ -26,6 +26,7 @@ from robonav.pipeline.wire.codes import ErrorCode
 from robonav.pipeline.wire.messages import ErrorReply
 from robonav.services.config import LimitsConfig, RobonavConfig, ZenohConfig, load_config
 from robonav.services.keys import Keys
+from robonav.services.signals import stop_on_signals
 from robonav.services.stack.secrets import check_example_passwords
 
 log = logging.getLogger("robonav")
@@ -120,19 +121,6 @@ def declare_latched_subscriber(session: zenoh.Session, key: str,
     """Subscribes and also fetches the cached last sample of every latched publisher, even late ones."""
     return zenoh.ext.declare_advanced_subscriber(session, key, callback,
                                                  history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
-
-
-def stop_on_signals(*signums: int) -> threading.Event:
-    """An event set by SIGINT/SIGTERM (docker stop sends SIGTERM). Main thread only."""
-    stop = threading.Event()
-
-    def handler(signum: int, _frame: Any) -> None:
-        log.info("signal %s: stopping", signal.Signals(signum).name)
-        stop.set()
-
-    for signum in signums or (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, handler)
-    return stop
 
 
 def reply_ok(query: zenoh.Query, message: Message) -> None:

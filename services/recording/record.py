@@ -35,9 +35,10 @@ import zenoh
 import zenoh.ext
 
 from robonav.pipeline.config import ConfigError
-from robonav.services.common import add_logging_arguments, load_cli_config, open_session, setup_logging, stop_on_signals
+from robonav.services.common import add_logging_arguments, load_cli_config, open_session, setup_logging
 from robonav.services.keys import Keys
 from robonav.services.recording.writer import CHECKPOINT_S, CountersFile, frame_finish, frame_message
+from robonav.services.signals import stop_on_signals
 
 log = logging.getLogger("robonav.record")
 

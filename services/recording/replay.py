@@ -34,9 +34,10 @@ import numpy as np
 import zenoh
 
 from robonav.pipeline.config import ConfigError
-from robonav.services.common import add_logging_arguments, load_cli_config, open_session, setup_logging, stop_on_signals
+from robonav.services.common import add_logging_arguments, load_cli_config, open_session, setup_logging
 from robonav.services.recording.files import Recording, RecordingError
 from robonav.services.recording.reader import ReadAhead
+from robonav.services.signals import stop_on_signals
 
 log = logging.getLogger("robonav.replay")
 

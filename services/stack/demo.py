@@ -32,9 +32,10 @@ from robonav.pipeline.robot.turns import joint_distance_rad
 from robonav.pipeline.wire.codes import ExecutionState
 from robonav.pipeline.wire.messages import ErrorReply, ExecuteResponse, PlanResponse
 from robonav.services.client import QueryFailed, RobonavClient
-from robonav.services.common import add_logging_arguments, open_session, setup_logging, stop_on_signals
+from robonav.services.common import add_logging_arguments, open_session, setup_logging
 from robonav.services.config import RobonavConfig, default_config_path, load_config
 from robonav.services.keys import SERVICES
+from robonav.services.signals import stop_on_signals
 from robonav.services.stack.robot_cell import DEMO_GOAL_COUNT, demo_goals, read_robot, with_robot, write_config
 from robonav.services.stack.up import Stack
 from robonav.services.tools.stop import EXIT_INTERRUPTED, Interrupt, stop_after_interrupt, wait_or_interrupt

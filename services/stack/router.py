@@ -17,9 +17,10 @@ import signal
 
 import zenoh
 
-from robonav.services.common import instance_name, parse_args_and_config, stop_on_signals, to_zenoh_config
+from robonav.services.common import instance_name, parse_args_and_config, to_zenoh_config
 from robonav.services.config import RobonavConfig, ZenohConfig
 from robonav.services.keys import Keys
+from robonav.services.signals import stop_on_signals
 
 log = logging.getLogger("robonav.router")
 

@@ -33,10 +33,10 @@ from robonav.services.common import (
     open_session,
     parse_args_and_config,
     reply_ok,
-    stop_on_signals,
 )
 from robonav.services.config import RobonavConfig, ZenohConfig
 from robonav.services.keys import SERVICES, Keys
+from robonav.services.signals import stop_on_signals
 from robonav.services.stack.supervisor import Supervisor
 
 log = logging.getLogger("robonav.up")

@@ -36,10 +36,10 @@ from robonav.services.common import (
     load_cli_config,
     open_session,
     setup_logging,
-    stop_on_signals,
 )
 from robonav.services.config import RobonavConfig, load_config, perceived_world_from_camera
 from robonav.services.keys import Keys
+from robonav.services.signals import stop_on_signals
 from robonav.services.view.gate import TOKEN_ENV, TokenGate, is_loopback, new_token
 
 log = logging.getLogger("robonav.view")
