@@ -326,6 +326,10 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
             if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
                 return
     # Self-collision, unpadded.
+    most = 0
+    for li in range(n_links):
+        most = max(most, link_start[li + 1] - link_start[li])
+    near_a, near_b = np.empty(most, dtype=np.int64), np.empty(most, dtype=np.int64)
     for p in range(self_pairs.shape[0]):
         la, lb = self_pairs[p, 0], self_pairs[p, 1]
         if not points_within(lanes, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
@@ -334,15 +338,28 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
             continue
         _ensure_placed(lanes, la, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
         _ensure_placed(lanes, lb, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
+        # Each link's spheres against the other link's bounding sphere first, then only the near
+        # ones against each other: most spheres of a pair whose bounds overlap are far from the
+        # other link, on both sides (a 12-sphere upper arm beside a 4-sphere wrist).
+        n_near_a = 0
+        for sa in range(link_start[la], link_start[la + 1]):
+            if points_within(lanes, sphere_lanes, sa, bound_lanes, lb, radii_self[sa] + bound_self[lb], near):
+                near_a[n_near_a] = sa
+                n_near_a += 1
+        if n_near_a == 0:
+            continue
+        n_near_b = 0
+        for sb in range(link_start[lb], link_start[lb + 1]):
+            if points_within(lanes, sphere_lanes, sb, bound_lanes, la, radii_self[sb] + bound_self[la], near):
+                near_b[n_near_b] = sb
+                n_near_b += 1
         touching = False
         for w in range(lanes):
             pair_near[w] = False
-        for sa in range(link_start[la], link_start[la + 1]):
-            # Against the other link's bounding sphere first: most spheres of a pair whose
-            # bounds overlap are far from the other link.
-            if not points_within(lanes, sphere_lanes, sa, bound_lanes, lb, radii_self[sa] + bound_self[lb], near):
-                continue
-            for sb in range(link_start[lb], link_start[lb + 1]):
+        for i in range(n_near_a):
+            sa = near_a[i]
+            for j in range(n_near_b):
+                sb = near_b[j]
                 if points_within(lanes, sphere_lanes, sa, sphere_lanes, sb, radii_self[sa] + radii_self[sb], near):
                     touching = True
                     for w in range(lanes):
