@@ -321,7 +321,9 @@ class MotionPlanner:
             if self.world.has_surface_allowance and self.config.release_map_clearance:
                 return self._surface_search(problem, start, goals, is_valid, motion_valid, budget_s - spent_s, rng,
                                             spent_s)
-            exact = self._search(problem, start, goals, is_valid, motion_valid, budget_s - spent_s, rng)
+            # The exact search accepts every state and edge the sphere-first one did: it grows
+            # the same trees on (OMPL continues a solve), rather than spending again what they cost.
+            exact = self._search(problem, start, goals, is_valid, motion_valid, budget_s - spent_s, rng, resume=True)
             detail = exact.detail if exact.status is PlanStatus.SUCCESS else (
                 f"{exact.detail} (after {spent_s:.3f} s of sphere-first search)")
             return dataclasses.replace(exact, detail=detail, search="exact")
@@ -337,7 +339,8 @@ class MotionPlanner:
         self._sphere_first = True
         try:
             with self.world.anchored(self.world.anchors, math.inf):
-                outcome = self._search(problem, start, goals, is_valid, motion_valid, budget_s, rng)
+                # Every state that kept the clearance keeps off the surface: the trees grow on.
+                outcome = self._search(problem, start, goals, is_valid, motion_valid, budget_s, rng, resume=True)
         finally:
             self._sphere_first = False
         detail = (f"{outcome.detail}; the map's clearance released after {spent_s:.3f} s"
@@ -345,8 +348,10 @@ class MotionPlanner:
         return dataclasses.replace(outcome, detail=detail, search="surface")
 
     def _search(self, problem: PlanProblem, start: FloatArray, goals: FloatArray, is_valid: StateValidFn,
-                motion_valid: MotionValidFn,
-                budget_s: float, rng: np.random.Generator) -> PlanOutcome:
+                motion_valid: MotionValidFn, budget_s: float, rng: np.random.Generator, *,
+                resume: bool = False) -> PlanOutcome:
+        """With `resume`, the first OMPL solve continues the last unsolved one of the same query
+        (`OmplSpace.solve`); the caller vouches that the checks now accept all they accepted."""
         t0 = time.perf_counter()
         deadline = t0 + budget_s
         planner_id = problem.planner_id
@@ -365,7 +370,9 @@ class MotionPlanner:
                 planner_id, result = self._auto(start, goals, remaining_s, rng, problem.stop)
             elif planner_id in PLANNER_CLASSES:
                 if is_valid is self._is_valid:
-                    result = self._space.solve(planner_id, start, goals, time_limit_s=remaining_s, stop=problem.stop)
+                    result = self._space.solve(planner_id, start, goals, time_limit_s=remaining_s, stop=problem.stop,
+                                               resume=resume)
+                    resume = False  # a path that failed the re-check is drawn afresh
                 else:  # workspace bounds: a roadmap checked without them cannot be reused
                     space = OmplSpace(JointSpaceProblem(self.robot.lower_limits_rad, self.robot.upper_limits_rad,
                                                         is_valid, motion_valid), range_rad=self.config.range_rad)

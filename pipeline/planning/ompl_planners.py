@@ -117,6 +117,21 @@ class _EdgeValidator(ob.MotionValidator):
         return bool(self._motion_valid(self._to_array(a), self._to_array(b)))
 
 
+@dataclass(frozen=True)
+class _Unsolved:
+    """The last query an `OmplSpace` found no path for, with the planner that grew its trees."""
+
+    planner_id: str
+    start_rad: FloatArray
+    goals_rad: FloatArray
+    planner: ob.Planner
+    definition: ob.ProblemDefinition
+
+    def same_query(self, planner_id: str, start_rad: FloatArray, goals_rad: FloatArray) -> bool:
+        return (planner_id == self.planner_id and np.array_equal(start_rad, self.start_rad)
+                and np.array_equal(goals_rad, self.goals_rad))
+
+
 class OmplSpace:
     """An OMPL state space with validity callbacks, and planners kept for reuse.
 
@@ -154,6 +169,7 @@ class OmplSpace:
         self.info.setMotionValidator(self._validator)
         self.info.setup()
         self._planners: dict[str, ob.Planner] = {}
+        self._unsolved: _Unsolved | None = None
         self._lock = threading.Lock()
         _live_spaces.add(self)
 
@@ -168,6 +184,7 @@ class OmplSpace:
         """
         with self._lock:
             self._planners.clear()
+            self._unsolved = None
         self._validator = None  # type: ignore[assignment]
         self.info = None  # type: ignore[assignment]
         self.space = None  # type: ignore[assignment]
@@ -204,9 +221,11 @@ class OmplSpace:
         return int(planner.milestoneCount()) if planner is not None else 0
 
     def forget_planners(self) -> None:
-        """Drop kept roadmaps: their edges were checked against a world that has changed."""
+        """Drop kept roadmaps and the trees of the last unsolved query: their edges were checked
+        against a world that has changed."""
         with self._lock:
             self._planners.clear()
+            self._unsolved = None
 
     def solve(
         self,
@@ -216,6 +235,7 @@ class OmplSpace:
         *,
         time_limit_s: float,
         stop: Callable[[], bool] | None = None,
+        resume: bool = False,
     ) -> PlanResult:
         """Search from `start_rad` to any of `goals_rad` with one OMPL planner.
 
@@ -228,6 +248,11 @@ class OmplSpace:
             goals_rad: (G, n) goal set [rad], G >= 1; the path ends exactly at one of them.
             time_limit_s: Budget [s], > 0.
             stop: Polled by the planner; when it returns True the search ends early.
+            resume: When the last query of this space was the same one (planner, start, goals)
+                and found nothing, its planner goes on from the trees or roadmap it grew
+                (OMPL planners continue where a `solve` ended). Sound only when the validity
+                callbacks now accept every state and edge they accepted then (a search that
+                relaxes its checks: sphere-first, then exact).
 
         Returns:
             A `PlanResult` whose path is (K, n), unsimplified, or TIMEOUT.
@@ -239,19 +264,24 @@ class OmplSpace:
             raise ValueError(f"goals_rad must have shape (G >= 1, {self.dof}), got {goals.shape}")
         if not (math.isfinite(time_limit_s) and time_limit_s > 0):
             raise ValueError(f"time_limit_s must be finite and > 0, got {time_limit_s}")
-        planner = self.planner(planner_id)
-        definition = ob.ProblemDefinition(self.info)
-        definition.addStartState(self._state(start))
-        goal_states = ob.GoalStates(self.info)
-        for g in goals:
-            goal_states.addState(self._state(g))
-        definition.setGoal(goal_states)
-        objective = ob.PathLengthOptimizationObjective(self.info)
-        if planner_id not in OPTIMIZING:
-            objective.setCostThreshold(ob.Cost(math.inf))  # the first solution satisfies it
-        definition.setOptimizationObjective(objective)
-        planner.setProblemDefinition(definition)
-        planner.setup()
+        unsolved, self._unsolved = self._unsolved, None
+        if resume and unsolved is not None and unsolved.same_query(planner_id, start, goals):
+            planner, definition = unsolved.planner, unsolved.definition
+            definition.clearSolutionPaths()  # the approximate one it ended with
+        else:
+            planner = self.planner(planner_id)
+            definition = ob.ProblemDefinition(self.info)
+            definition.addStartState(self._state(start))
+            goal_states = ob.GoalStates(self.info)
+            for g in goals:
+                goal_states.addState(self._state(g))
+            definition.setGoal(goal_states)
+            objective = ob.PathLengthOptimizationObjective(self.info)
+            if planner_id not in OPTIMIZING:
+                objective.setCostThreshold(ob.Cost(math.inf))  # the first solution satisfies it
+            definition.setOptimizationObjective(objective)
+            planner.setProblemDefinition(definition)
+            planner.setup()
         timed = ob.timedPlannerTerminationCondition(float(time_limit_s))
         if stop is None:
             status = planner.solve(timed)
@@ -260,6 +290,7 @@ class OmplSpace:
                 timed, ob.PlannerTerminationCondition(stop)))
         elapsed = time.perf_counter() - t0
         if status.getStatus() != ob.PlannerStatus.EXACT_SOLUTION or not definition.hasExactSolution():
+            self._unsolved = _Unsolved(planner_id, start, goals, planner, definition)
             return PlanResult(PlanStatus.TIMEOUT, None,
                               f"{planner_id}: no exact solution within {time_limit_s:.3f} s (OMPL: {status})", elapsed)
         solution = definition.getSolutionPath()

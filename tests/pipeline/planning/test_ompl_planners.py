@@ -131,6 +131,34 @@ def test_prm_reuses_its_roadmap_until_told_to_forget(make_point_robot) -> None:
     assert space.roadmap_size("prm") == 0
 
 
+def test_resume_grows_the_trees_of_the_unsolved_query_on(make_point_robot) -> None:
+    closed, opened = make_point_robot([(0.45, 0.0, 0.55, 1.0)]), make_point_robot([WALL])
+    world = [closed]  # a stricter check first (the wall without its gap), then the looser one
+    start_checks = []
+
+    def is_valid(q: np.ndarray) -> bool:
+        start_checks.extend([1] if np.array_equal(q, START) else [])
+        return world[0].is_valid(q)
+
+    space = OmplSpace(JointSpaceProblem(closed.lower, closed.upper, is_valid, lambda a, b: world[0].motion_valid(a, b)))
+    assert space.solve("rrtconnect", START, GOAL[None], time_limit_s=0.2).status is PlanStatus.TIMEOUT
+    assert len(start_checks) == 1  # OMPL checks a start as it roots a tree there
+    world[0] = opened
+    resumed = space.solve("rrtconnect", START, GOAL[None], time_limit_s=2.0, resume=True)
+    assert resumed.success, resumed.detail
+    assert len(start_checks) == 1  # grown on from the kept trees: no new root
+    assert all(opened.motion_valid(a, b) for a, b in zip(resumed.path[:-1], resumed.path[1:]))
+    # Solved, nothing is kept: resuming starts afresh; so does another query or a world change.
+    assert space.solve("rrtconnect", START, GOAL[None], time_limit_s=2.0, resume=True).success
+    assert len(start_checks) == 2
+    world[0] = closed
+    space.solve("rrtconnect", START, GOAL[None], time_limit_s=0.1)
+    space.forget_planners()
+    world[0] = opened
+    assert space.solve("rrtconnect", START, GOAL[None], time_limit_s=2.0, resume=True).success
+    assert len(start_checks) == 4
+
+
 def test_goal_set_ends_at_one_of_the_goals_and_drops_invalid_ones(make_point_robot) -> None:
     robot = make_point_robot([WALL])
     goals = np.array([[0.5, 0.5], [0.9, 0.1], [0.9, 0.9]])  # the first is inside the wall
