@@ -25,6 +25,7 @@ import numpy as np
 from numba.core import types
 from numba.experimental import structref
 
+from robonav.pipeline.collision.spheres.gjk import link_keeps_off_object
 from robonav.pipeline.collision.spheres.kernels import (
     BOX,
     CONTACT_EPS_M,
@@ -35,7 +36,7 @@ from robonav.pipeline.collision.spheres.kernels import (
     voxel_distance,
 )
 from robonav.pipeline.collision.spheres.self_pair_tables import ROUNDING_GUARD_M
-from robonav.pipeline.collision.spheres.separating_planes import link_outside_box, pair_separated
+from robonav.pipeline.collision.spheres.separating_planes import GUARD_M, link_outside_box, pair_separated
 from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes
 from robonav.pipeline.types import BoolArray, FloatArray, IntArray
 
@@ -302,10 +303,13 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
                                        distance)
                 _flag_within(lanes, distance, radii_world[s] + CONTACT_EPS_M, pair_near)
             for w in range(lanes):
-                # A box face with the whole (padded) link hull beyond it clears what the spheres flag.
+                # A box face with the whole (padded) link hull beyond it, or else GJK's proof that
+                # the hull keeps off the object, clears what the spheres flag.
                 if pair_near[w] and not flags[w] and not (obj_kind[k] == BOX and link_outside_box(
                         w, li, k, frames, link_joint, world.sep_link_whole, world.sep_vertex_start, world.sep_vertices,
-                        obj_rotation, obj_translation, obj_param, world.sep_link_growth[li])):
+                        obj_rotation, obj_translation, obj_param, world.sep_link_growth[li])) and not link_keeps_off_object(
+                        w, li, k, frames, link_joint, world.sep_link_whole, world.sep_vertex_start, world.sep_vertices,
+                        obj_kind, obj_rotation, obj_translation, obj_param, world.sep_link_growth[li] + GUARD_M):
                     flags[w] = True
             if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
                 return

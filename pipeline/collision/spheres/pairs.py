@@ -12,6 +12,7 @@ import math
 
 import numba as nb
 
+from robonav.pipeline.collision.spheres.gjk import link_keeps_off_object
 from robonav.pipeline.collision.spheres.kernels import BOX, CONTACT_EPS_M, touches_cells, voxel_distance
 from robonav.pipeline.collision.spheres.lanes import (
     LaneWorld,
@@ -20,7 +21,7 @@ from robonav.pipeline.collision.spheres.lanes import (
     place_lanes,
     points_within,
 )
-from robonav.pipeline.collision.spheres.separating_planes import link_outside_box, pair_separated
+from robonav.pipeline.collision.spheres.separating_planes import GUARD_M, link_outside_box, pair_separated
 from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes, link_pose_from_lane
 from robonav.pipeline.types import BoolArray, FloatArray
 
@@ -69,9 +70,11 @@ def suspect_pairs_of_state(q: FloatArray, world: LaneWorld, object_flags: BoolAr
                 if distance[0] <= radii_world[s] + CONTACT_EPS_M:
                     object_flags[li, k] = True
                     break
-            if object_flags[li, k] and obj_kind[k] == BOX and link_outside_box(
+            if object_flags[li, k] and ((obj_kind[k] == BOX and link_outside_box(
                     0, li, k, frames, link_joint, world.sep_link_whole, world.sep_vertex_start, world.sep_vertices,
-                    obj_rotation, obj_translation, obj_param, world.sep_link_growth[li]):
+                    obj_rotation, obj_translation, obj_param, world.sep_link_growth[li])) or link_keeps_off_object(
+                    0, li, k, frames, link_joint, world.sep_link_whole, world.sep_vertex_start, world.sep_vertices,
+                    obj_kind, obj_rotation, obj_translation, obj_param, world.sep_link_growth[li] + GUARD_M)):
                 object_flags[li, k] = False
         voxel_flags[li] = False
         if world.has_grid and voxel_distance(bound_lanes[li, 0, 0], bound_lanes[li, 1, 0], bound_lanes[li, 2, 0], grid,
