@@ -239,10 +239,15 @@ def _edge_ab_or_a(s: FloatArray, d: FloatArray, ax: float, ay: float, az: float,
 
 @nb.njit(cache=True)
 def link_keeps_off_object(w: int, li: int, k: int, frames: FloatArray, link_joint: IntArray, link_whole: IntArray,
-                          vertex_start: IntArray, vertices_joint: FloatArray, obj_kind: IntArray, obj_rotation: FloatArray,
-                          obj_translation: FloatArray, obj_param: FloatArray, margin_m: float) -> bool:  # pragma: no cover
-    """`polytope_keeps_off` for link li's whole polytope (vertices in its joint's frame, the
-    joint placed by lane w of `frames`) and scene object k."""
+                          piece_link: IntArray, vertex_start: IntArray, vertices_joint: FloatArray, obj_kind: IntArray,
+                          obj_rotation: FloatArray, obj_translation: FloatArray, obj_param: FloatArray,
+                          margin_m: float) -> bool:  # pragma: no cover (compiled)
+    """`polytope_keeps_off` for link li (vertices in its joint's frame, the joint placed by lane w
+    of `frames`) and scene object k: its whole polytope, or else every one of its convex pieces
+    (`separating_planes.link_pieces`, the rows after the whole one of the same link), which
+    together hold every triangle of its meshes. A hull fills a link's concave side (the UR5's
+    forearm between its joint housings), where bars and boards pass close to the mesh itself.
+    """
     piece = link_whole[li]
     if piece < 0:
         return False
@@ -253,6 +258,17 @@ def link_keeps_off_object(w: int, li: int, k: int, frames: FloatArray, link_join
         for c in range(3):
             rotation[r, c] = frames[j, 3 * r + c, w]
         translation[r] = frames[j, 9 + r, w]
-    return polytope_keeps_off(rotation, translation, vertices_joint, vertex_start[piece], vertex_start[piece + 1],
-                              obj_kind[k], obj_rotation[k], obj_translation[k], obj_param[k, 0], obj_param[k, 1],
-                              obj_param[k, 2], margin_m)
+    kind, p0, p1, p2 = obj_kind[k], obj_param[k, 0], obj_param[k, 1], obj_param[k, 2]
+    if polytope_keeps_off(rotation, translation, vertices_joint, vertex_start[piece], vertex_start[piece + 1], kind,
+                          obj_rotation[k], obj_translation[k], p0, p1, p2, margin_m):
+        return True
+    last = piece + 1
+    while last < piece_link.shape[0] and piece_link[last] == li:
+        last += 1
+    if last == piece + 1:
+        return False  # the link is one piece: its whole polytope
+    for sub in range(piece + 1, last):
+        if not polytope_keeps_off(rotation, translation, vertices_joint, vertex_start[sub], vertex_start[sub + 1], kind,
+                                  obj_rotation[k], obj_translation[k], p0, p1, p2, margin_m):
+            return False
+    return True

@@ -308,8 +308,9 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
                 if pair_near[w] and not flags[w] and not (obj_kind[k] == BOX and link_outside_box(
                         w, li, k, frames, link_joint, world.sep_link_whole, world.sep_vertex_start, world.sep_vertices,
                         obj_rotation, obj_translation, obj_param, world.sep_link_growth[li])) and not link_keeps_off_object(
-                        w, li, k, frames, link_joint, world.sep_link_whole, world.sep_vertex_start, world.sep_vertices,
-                        obj_kind, obj_rotation, obj_translation, obj_param, world.sep_link_growth[li] + GUARD_M):
+                        w, li, k, frames, link_joint, world.sep_link_whole, world.sep_piece_link, world.sep_vertex_start,
+                        world.sep_vertices, obj_kind, obj_rotation, obj_translation, obj_param,
+                        world.sep_link_growth[li] + GUARD_M):
                     flags[w] = True
             if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
                 return

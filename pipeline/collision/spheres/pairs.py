@@ -73,8 +73,9 @@ def suspect_pairs_of_state(q: FloatArray, world: LaneWorld, object_flags: BoolAr
             if object_flags[li, k] and ((obj_kind[k] == BOX and link_outside_box(
                     0, li, k, frames, link_joint, world.sep_link_whole, world.sep_vertex_start, world.sep_vertices,
                     obj_rotation, obj_translation, obj_param, world.sep_link_growth[li])) or link_keeps_off_object(
-                    0, li, k, frames, link_joint, world.sep_link_whole, world.sep_vertex_start, world.sep_vertices,
-                    obj_kind, obj_rotation, obj_translation, obj_param, world.sep_link_growth[li] + GUARD_M)):
+                    0, li, k, frames, link_joint, world.sep_link_whole, world.sep_piece_link, world.sep_vertex_start,
+                    world.sep_vertices, obj_kind, obj_rotation, obj_translation, obj_param,
+                    world.sep_link_growth[li] + GUARD_M)):
                 object_flags[li, k] = False
         voxel_flags[li] = False
         if world.has_grid and voxel_distance(bound_lanes[li, 0, 0], bound_lanes[li, 1, 0], bound_lanes[li, 2, 0], grid,
