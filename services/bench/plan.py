@@ -46,8 +46,6 @@ from robonav.services.bench.plan_maps import CAMERA_FRAMES, CLOUD_SPACING_M, Cam
 from robonav.services.campaign.run import EXTRA_CAMERAS_NAME, campaign_config
 from robonav.services.config import ConfigError, default_config_path, load_config, load_robot_file
 
-BENCH_RANGE_RAD = 1.0
-"""RRTConnect range for the benchmark: MPLib's MBM figures solve 99.4 % with it, 82.7 % with OMPL's default."""
 BENCH_EDGE_RESOLUTION_RAD = 0.02
 """Joint step of the planner's edge checks while it searches and shortcuts [rad]."""
 BENCH_PATH_CHECK_RESOLUTION_RAD = FINE_STEP_RAD
@@ -167,7 +165,7 @@ def main(args: argparse.Namespace) -> int:
         "robot": robot_base.name if robot_base is not None else "panda",
         "robot_file": str(args.robot) if args.robot is not None else None,
         "planner": args.planner, "time_limit_s": args.time_limit, "seed": args.seed, "padding_m": args.padding,
-        "scene": args.scene, "surface_allowance_rad": args.surface_allowance, "range_rad": BENCH_RANGE_RAD, "edge_resolution_rad": BENCH_EDGE_RESOLUTION_RAD,
+        "scene": args.scene, "surface_allowance_rad": args.surface_allowance, "range_rad": PlannerConfig().range_rad, "edge_resolution_rad": BENCH_EDGE_RESOLUTION_RAD,
         "path_check_resolution_rad": BENCH_PATH_CHECK_RESOLUTION_RAD,
         "fine_check_step_rad": FINE_STEP_RAD, "fine_check_model": "link collision meshes (FCL BVH), unpadded",
         **({"cloud_spacing_m": CLOUD_SPACING_M, "occupancy_resolution_m": PerceptionConfig().resolution_m,
@@ -268,7 +266,7 @@ def run_plan_benchmark(
         One record per problem, in family and problem order.
     """
     total = sum(len(s.problems) for s in sets)
-    planner_config = PlannerConfig(allowed_planning_time_s=time_limit_s, range_rad=BENCH_RANGE_RAD,
+    planner_config = PlannerConfig(allowed_planning_time_s=time_limit_s,
                                    edge_resolution_rad=BENCH_EDGE_RESOLUTION_RAD,
                                    path_check_resolution_rad=BENCH_PATH_CHECK_RESOLUTION_RAD, seed=seed)
     if surface_allowance_rad is not None:
@@ -284,6 +282,9 @@ def run_plan_benchmark(
                robot_config.allowed_collision_pairs)
         if key not in robots:
             robots[key] = RobotModel.from_config(robot_config)
+            # The link meshes contacts are confirmed on (tens of ms a mesh) are built before any
+            # plan is timed, as the planner service's warm-up builds them; every world shares them.
+            CollisionWorld(robots[key], padding_m=padding_m).build_exact_shapes()
         robot = robots[key]
         checker = MeshCollisionChecker(robot)
         for problem in problem_set.problems:
