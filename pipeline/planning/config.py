@@ -15,8 +15,11 @@ class PlannerConfig:
     """Default planner when a request names none."""
     allowed_planning_time_s: float = 2.0
     """Default planning budget per request [s]."""
-    range_rad: float = 0.0
-    """RRTConnect extension length in joint space [rad]; 0 lets OMPL choose."""
+    range_rad: float = 0.7
+    """Longest tree extension of RRT-Connect, RRT and RRT* in joint space [rad]; 0 lets OMPL
+    choose (a fifth of the joint space's extent: about 3 rad on the UR5). MotionBenchMaker, 1 s:
+    the UR5's 350 problems 92.9 % solved with OMPL's choice, 97.7-98.3 % with 1.0 and 99.4 % with
+    0.7 (its cages need short steps); the Panda's 100 % with 0.7 and 1.0, in 6.0 and 5.6 ms."""
     edge_resolution_rad: float = 0.02
     """Largest joint-space step between collision checks along an edge [rad]."""
     path_check_resolution_rad: float = 0.0
