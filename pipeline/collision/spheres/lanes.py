@@ -331,9 +331,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
             if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
                 return
     # Self-collision, unpadded.
-    most = 0
-    for li in range(n_links):
-        most = max(most, link_start[li + 1] - link_start[li])
+    most = np.max(np.diff(link_start)) if n_links > 0 else 0  # spheres of the largest link
     near_a, near_b = np.empty(most, dtype=np.int64), np.empty(most, dtype=np.int64)
     for p in range(self_pairs.shape[0]):
         la, lb = self_pairs[p, 0], self_pairs[p, 1]
