@@ -10,6 +10,9 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
+import numpy as np
+import numpy.typing as npt
+
 from robonav.pipeline.config import require
 from robonav.pipeline.transforms import PoseSpec, make_transform
 from robonav.pipeline.types import FloatArray
@@ -67,6 +70,21 @@ class CameraConfig:
         """Square-pixel pinhole intrinsics from the vertical field of view."""
         fy = 0.5 * self.height / math.tan(math.radians(self.vertical_fov_deg) / 2.0)
         return CameraIntrinsics(self.width, self.height, fy, fy, (self.width - 1) / 2.0, (self.height - 1) / 2.0)
+
+    def holds(self, points_m: npt.ArrayLike) -> bool:
+        """Whether every point of `points_m` (N, 3, world frame) lies in the view frustum: in
+        front of the camera between `near_m` and `far_m`, and projecting into the image."""
+        points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+        camera_from_world = np.linalg.inv(self.world_from_camera)
+        in_camera = points @ camera_from_world[:3, :3].T + camera_from_world[:3, 3]
+        z = in_camera[:, 2]
+        if not np.all((z >= self.near_m) & (z <= self.far_m)):
+            return False
+        k = self.intrinsics
+        u = k.cx + k.fx * in_camera[:, 0] / z
+        v = k.cy + k.fy * in_camera[:, 1] / z
+        # Pixel centres run from 0 to width - 1; a pixel covers half a pixel either side.
+        return bool(np.all((u >= -0.5) & (u <= k.width - 0.5) & (v >= -0.5) & (v <= k.height - 0.5)))
 
 
 @dataclass(frozen=True)

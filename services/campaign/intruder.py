@@ -21,8 +21,10 @@ INTRUDER_LEAD_S = 1.2
 time for a frame, a map, the guard's check and a stop (a box hitting an arm that cannot get
 away in time tests nothing)."""
 INTRUDER_MIN_PIXELS = 100
-"""Pixels of the resting box at least one camera must show (a 10 cm box 1.2 m from a 320x240
-camera fills about 500)."""
+"""Pixels of the resting box at least one camera must show, with the whole box inside its
+view (a 10 cm box 1.2 m from a 320x240 camera fills about 500). A count alone let a box through
+that stood above a camera's image, three rows of it in the top edge: the map held a sliver of
+its underside and a plan went through the rest."""
 
 
 class IntruderPlacer:
@@ -66,10 +68,23 @@ class IntruderPlacer:
                                        min_lead_s=INTRUDER_LEAD_S, reject=unfit)
 
     def pixels_seen(self, box: SceneObject, q: np.ndarray) -> int:
-        """The most pixels of `box` any camera shows, the arm at `q` and the scene in front of it."""
+        """The most pixels of `box` a camera shows that holds all of it in its view (0 if none
+        does), the arm at `q` and the scene in front of it."""
+        corners = box_corners_m(box)
+        cameras = [camera for camera in self.cfg.cameras if camera.holds(corners)]
+        if not cameras:
+            return 0
         self._eyes.set_joint_positions(q)
         self._eyes.add_object(box)
         try:
-            return max(self._eyes.pixels_of(box.name, self.cfg.cameras))
+            return max(self._eyes.pixels_of(box.name, cameras))
         finally:
             self._eyes.remove_object(box.name)
+
+
+def box_corners_m(obj: SceneObject) -> np.ndarray:
+    """(8, 3) corners of `obj`'s bounding box in its own frame, in the world frame [m]."""
+    center, half = obj.local_bounds_m
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+    pose = obj.world_from_object
+    return (center + signs * half) @ pose[:3, :3].T + pose[:3, 3]
