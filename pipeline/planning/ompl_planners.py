@@ -13,6 +13,7 @@ whole time budget to shorten their path, as they do in MoveIt.
 from __future__ import annotations
 
 import atexit
+import functools
 import gc
 import math
 import multiprocessing
@@ -105,16 +106,22 @@ class JointSpaceProblem:
 
 
 class _EdgeValidator(ob.MotionValidator):
-    """Checks a whole tree edge with one Python call instead of OMPL's per-state discretisation."""
+    """Checks a whole tree edge with one Python call instead of OMPL's per-state discretisation.
 
-    def __init__(self, info: ob.SpaceInformation, motion_valid: MotionValidFn,
-                 to_array: Callable[[ob.State], FloatArray]) -> None:
+    It holds its space weakly, as the state validity callback does (see `OmplSpace.__init__`)."""
+
+    def __init__(self, info: ob.SpaceInformation, space: weakref.ref[OmplSpace]) -> None:
         super().__init__(info)
-        self._motion_valid = motion_valid
-        self._to_array = to_array
+        self._space = space
 
     def checkMotion(self, a: ob.State, b: ob.State) -> bool:  # noqa: N802 (OMPL's name)
-        return bool(self._motion_valid(self._to_array(a), self._to_array(b)))
+        space = self._space()
+        return space is not None and bool(space.problem.motion_valid(space.to_array(a), space.to_array(b)))
+
+
+def _state_valid(space_ref: weakref.ref[OmplSpace], state: ob.State) -> bool:
+    space = space_ref()
+    return space is not None and bool(space.problem.is_valid(space.to_array(state)))
 
 
 @dataclass(frozen=True)
@@ -162,10 +169,15 @@ class OmplSpace:
             bounds.setHigh(i, float(upper[i]))
         self.space.setBounds(bounds)
         self.info = ob.SpaceInformation(self.space)
-        is_valid, to_array = problem.is_valid, self.to_array
-        self.info.setStateValidityChecker(lambda state: bool(is_valid(to_array(state))))
+        # OMPL's SpaceInformation holds both callbacks from C++, where the garbage collector cannot
+        # follow them: a callback holding this space (or the validity functions, which hold their
+        # owner and its collision world) would close a cycle that is never collected, one planner
+        # and world lost per space (`robonav bench plan --scene camera` grew by 40-80 MB a problem
+        # until the kernel killed it at 24 GB). They hold the space weakly instead.
+        space = weakref.ref(self)
+        self.info.setStateValidityChecker(functools.partial(_state_valid, space))
         # OMPL holds a raw reference to the validator: it must live as long as this object.
-        self._validator = _EdgeValidator(self.info, problem.motion_valid, to_array)
+        self._validator = _EdgeValidator(self.info, space)
         self.info.setMotionValidator(self._validator)
         self.info.setup()
         self._planners: dict[str, ob.Planner] = {}

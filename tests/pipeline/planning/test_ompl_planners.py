@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import gc
+import weakref
+
 import numpy as np
 import pytest
 
@@ -174,3 +177,29 @@ def test_race_returns_a_winner_and_stops_the_others(make_point_robot) -> None:
     assert result.success and winner in ("rrtconnect", "prmstar")
     # PRM* alone would use the whole 5 s; the win stopped it long before.
     assert result.planning_time_s < 2.0
+
+
+class _Owner:
+    """Holds its space and gives it validity callbacks that hold the owner, as `MotionPlanner`
+    does (its callbacks reach its collision world)."""
+
+    def __init__(self, robot) -> None:
+        self.robot = robot
+        self.payload = bytearray(1 << 20)
+        self.space = OmplSpace(JointSpaceProblem(robot.lower, robot.upper, lambda q: self.robot.is_valid(q),
+                                                 lambda a, b: self.robot.motion_valid(a, b)))
+
+
+@pytest.mark.parametrize("solve", [False, True])
+def test_space_and_its_owner_are_collected(make_point_robot, solve: bool) -> None:
+    # OMPL holds the callbacks from C++, out of the garbage collector's sight: a callback that
+    # held its owner would keep the owner, its world and the space alive for good.
+    owner = _Owner(make_point_robot([WALL]))
+    if solve:
+        result = owner.space.solve("rrtconnect", START, GOAL[None], time_limit_s=0.5)
+        assert result.status is PlanStatus.SUCCESS
+        assert owner.space.solve("rrtconnect", START, np.array([[0.5, 0.5]]), time_limit_s=0.05).status is PlanStatus.TIMEOUT
+    owner_ref, space_ref = weakref.ref(owner), weakref.ref(owner.space)
+    del owner
+    gc.collect()
+    assert owner_ref() is None and space_ref() is None
