@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import gc
 
 import numpy as np
 import octomap
@@ -13,7 +14,7 @@ from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.planning.ik import pose_error
 from robonav.pipeline.planning.motion_planner import PLANNERS, MotionPlanner, PlanProblem, PoseGoal
-from robonav.pipeline.planning.ompl_planners import seed_ompl_once
+from robonav.pipeline.planning.ompl_planners import OmplSpace, seed_ompl_once
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import RobotModel
@@ -179,6 +180,24 @@ def test_workspace_bounds_are_respected(setup) -> None:
         assert np.all(p >= low - 1e-9) and np.all(p <= high + 1e-9)
     tight = planner.plan(PlanProblem(start, goal, workspace_min_m=hand[0] - 0.01, workspace_max_m=hand[0] + 0.01))
     assert tight.status is PlanStatus.GOAL_INVALID
+
+
+def test_requests_with_workspace_bounds_leave_no_search_space_behind(setup) -> None:
+    # Such a request gets a search space of its own; OMPL holds its callbacks from C++, so one
+    # that held its space would keep it (and its trees) in a long-running planner for good.
+    planner, start, goal = setup
+    hand = [planner.robot.frame_pose(q, "panda_hand")[:3, 3] for q in (start, goal)]
+    low, high = np.minimum(*hand) - 0.6, np.maximum(*hand) + 0.6
+
+    def spaces() -> int:
+        gc.collect()
+        return sum(isinstance(o, OmplSpace) for o in gc.get_objects())
+
+    before = spaces()
+    for seed in range(3):
+        outcome = planner.plan(PlanProblem(start, goal, workspace_min_m=low, workspace_max_m=high, seed=seed))
+        assert outcome.status is PlanStatus.SUCCESS, outcome.detail
+    assert spaces() == before
 
 
 def test_several_attempts_return_the_shortest(setup) -> None:
