@@ -185,7 +185,6 @@ class _Owner:
 
     def __init__(self, robot) -> None:
         self.robot = robot
-        self.payload = bytearray(1 << 20)
         self.space = OmplSpace(JointSpaceProblem(robot.lower, robot.upper, lambda q: self.robot.is_valid(q),
                                                  lambda a, b: self.robot.motion_valid(a, b)))
 
