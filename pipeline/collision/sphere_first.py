@@ -61,17 +61,12 @@ class SphereFirstChecks:
         if not self._broad_phase_usable():
             return not self.in_collision(q)
         q = self._robot.validate_q(q)
-        if not self._broad_phase.state_suspect(q):
-            return True
-        return self._suspect_free(q, exact, -1)
-
-    def _suspect_free(self: CollisionWorld, q: FloatArray, exact: StateValidFn, flagged_tier: int) -> bool:
-        """A state the broad phase flagged at clearance tier `flagged_tier`: free by the spheres
-        of its own tier, where the map's clearance shrinks toward an anchor, or else, where
-        `exact`, by FCL."""
         tier = self.clearance_tier(q)
-        if tier != flagged_tier and tier >= 0 and not self._broad_phase.state_suspect(q, tier=tier):
-            return True
+        return not self._broad_phase.state_suspect(q, tier=tier) or self._suspect_free(q, exact, tier)
+
+    def _suspect_free(self: CollisionWorld, q: FloatArray, exact: StateValidFn, tier: int) -> bool:
+        """A state the broad phase flagged at its own clearance tier `tier`: free where `exact`
+        and FCL finds it free."""
         return bool(exact(q)) and not self._check(q, first_only=True, tier=tier)
 
     def motion_free_by_spheres(self: CollisionWorld, q_a: FloatArray, q_b: FloatArray, resolution_rad: float,
@@ -84,20 +79,19 @@ class SphereFirstChecks:
 
     def _suspects_free(self: CollisionWorld, a: FloatArray, b: FloatArray, resolution_rad: float,
                        exact: StateValidFn) -> bool:
-        """The edge's broad-phase suspects, in `motion_valid` order, are each either asked of
-        FCL (where `exact`) and free, or none exist. The first suspect is tried alone first
-        because a blocked edge's first suspect usually is a collision."""
-        # The whole edge at the clearance of its farthest state from the anchors (the strictest).
-        tier = self.edge_tier(a, b)
-        first, steps = self._broad_phase.edge_suspects(a, b, resolution_rad, first_only=True, tier=tier)
+        """The edge's broad-phase suspects, each checked at its own clearance tier, in
+        `motion_valid` order, are each either asked of FCL (where `exact`) and free, or none
+        exist. The first suspect is tried alone first because a blocked edge's first suspect
+        usually is a collision."""
+        anchors, radius_sq = self.tier_anchors
+        edge = self._broad_phase.edge_suspects
+        first, tiers, steps = edge(a, b, resolution_rad, first_only=True, anchors=anchors, anchor_radius_sq=radius_sq)
         if first.size == 0:
             return True
-        q = a + (b - a) * (first[0] / steps)
-        if not self._suspect_free(q, exact, tier):
+        if not self._suspect_free(a + (b - a) * (first[0] / steps), exact, int(tiers[0])):
             return False
-        suspects, _ = self._broad_phase.edge_suspects(a, b, resolution_rad, tier=tier)
-        for k in suspects[1:]:
-            q = a + (b - a) * (k / steps)
-            if not self._suspect_free(q, exact, tier):
+        suspects, tiers, _ = edge(a, b, resolution_rad, anchors=anchors, anchor_radius_sq=radius_sq)
+        for k, tier in zip(suspects[1:], tiers[1:]):
+            if not self._suspect_free(a + (b - a) * (k / steps), exact, int(tier)):
                 return False
         return True

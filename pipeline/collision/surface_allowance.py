@@ -143,16 +143,13 @@ class SurfaceAllowance:
             return []
         return self._check(q, first_only=first_only, padded=padded, tier=tier)
 
-    def edge_tier(self, q_a: FloatArray, q_b: FloatArray) -> int:
-        """A clearance tier no lower than any state's on the segment from `q_a` to `q_b`: the
-        distance to a fixed anchor is convex along a segment, so it peaks at an end."""
+    @property
+    def tier_anchors(self) -> tuple[FloatArray, float]:
+        """The anchors (K, dof) and squared radius the clearance tiers are measured by; no anchors
+        where `clearance_tier` is -1 for every state."""
         if self._surface_octree is None or not self._anchors.shape[0] or self._anchor_radius_sq <= 0:
-            return -1
-        reach_sq = math.inf
-        for anchor in self._anchors:
-            to_a, to_b = anchor - q_a, anchor - q_b
-            reach_sq = min(reach_sq, max(float(to_a.dot(to_a)), float(to_b.dot(to_b))))
-        return _tier(reach_sq, self._anchor_radius_sq)
+            return self._anchors[:0], 0.0
+        return self._anchors, self._anchor_radius_sq
 
     def touches_cubes(self: CollisionWorld, q: FloatArray, centers_m: FloatArray, side_m: float) -> bool:
         """True when a padded link at `q` touches one of the axis-aligned cubes of edge `side_m`

@@ -27,12 +27,12 @@ import math
 import weakref
 from collections.abc import Sequence
 
-import fcl
 import numpy as np
 
+from robonav.pipeline.collision.spheres.edge_lanes import edge_suspect_steps
 from robonav.pipeline.collision.spheres.grid_layers import NO_BOXES, NO_SLOTS, VoxelLayer, cell_boxes, cell_layer, voxel_layer
 from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE
-from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld, edge_suspect_steps, state_suspect_lanes
+from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld, state_suspect_lanes
 from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, suspect_pairs_of_state
 from robonav.pipeline.collision.spheres.piece_gaps import raise_by_piece_gaps
 from robonav.pipeline.collision.spheres.self_pair_tables import SelfPairTables, build_self_pair_tables
@@ -42,10 +42,14 @@ from robonav.pipeline.collision.spheres.separating_planes import (
     joint_frame_pieces,
     shape_key,
 )
-from robonav.pipeline.collision.spheres.sphere_model import RobotSphereModel, radii_covering, robot_sphere_model
+from robonav.pipeline.collision.spheres.sphere_model import (
+    RobotSphereModel,
+    padded_growth_m,
+    robot_sphere_model,
+    world_radii,
+)
 from robonav.pipeline.collision.spheres.table_store import dataclass_from_arrays, dataclass_to_arrays, stored, table_key
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
-from robonav.pipeline.robot.link_geometry import LinkShape, grow_hull
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
@@ -88,12 +92,12 @@ class SphereBroadPhase:
         self._model = model
         links = robot.collision_link_names
         shapes = [s for link in links for s in robot.link_collision_shapes[link]]
-        growth = np.array([_padded_growth_m(s.hull_vertices, s.hull_triangles, padding_m) for s in shapes])
+        growth = np.array([padded_growth_m(s.hull_vertices, s.hull_triangles, padding_m) for s in shapes])
         # Fresh writable C arrays: numba compiles one specialisation per array layout/writability,
         # and a lazy compile triggered from an OMPL worker thread can deadlock on the GIL.
         self._centers_link = np.array(model.centers_link_m, dtype=np.float64, order="C")
         self._radii_self = np.array(model.radii_m, dtype=np.float64)
-        self._radii_world = _world_radii(shapes, model, growth, padding_m)
+        self._radii_world = world_radii(shapes, model, growth, padding_m)
         # How far the padded hulls FCL uses reach beyond a link's own (separating_planes' box test).
         self._link_growth = np.array([max((growth[s] for s in np.flatnonzero(np.array([sh.link for sh in shapes]) == link)),
                                           default=0.0) for link in links], dtype=np.float64)
@@ -137,9 +141,9 @@ class SphereBroadPhase:
             flags=np.zeros(LANES, dtype=np.bool_), frames=self._kin.new_lane_frames(LANES),
             sphere_lanes=np.zeros((self._centers_link.shape[0], 3, LANES)), bound_lanes=np.zeros((n_links, 3, LANES)),
             placed=np.zeros(n_links, dtype=np.bool_), near=np.zeros(LANES, dtype=np.bool_), distance=np.zeros(LANES),
-            pair_near=np.zeros(LANES, dtype=np.bool_))
-        self._step_buffer = np.zeros(1, dtype=np.int64)
-        self._queue = np.zeros((1, 2), dtype=np.int64)
+            pair_near=np.zeros(LANES, dtype=np.bool_), lane_clearance=np.zeros(LANES))
+        self._step_buffer, self._tier_buffer = np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)
+        self._queue, self._no_anchors = np.zeros((1, 2), dtype=np.int64), np.zeros((0, dof))
         self.clear_objects()
         self.clear_occupancy()
         self._attached: dict[str, tuple[int, FloatArray, FloatArray, tuple[str, ...]]] = {}
@@ -313,6 +317,7 @@ class SphereBroadPhase:
         worlds = {c: self._new_lane_world(c, self._fine) for c in set(self._clearances)}
         self._lane_worlds = [worlds[c] for c in self._clearances]
         self._lane_world = self._lane_worlds[-1]
+        self._tier_clearance = np.array(self._clearances, dtype=np.float64)
         n_links = self._link_start.shape[0] - 1
         self._pair_outputs = (np.zeros((n_links, self._obj_kind.shape[0]), dtype=np.bool_),
                               np.zeros(n_links, dtype=np.bool_), np.zeros(self._self_pairs.shape[0], dtype=np.bool_),
@@ -384,37 +389,46 @@ class SphereBroadPhase:
         clears it (the world ignored): for probes (`CollisionWorld.sphere_self_overflag`)."""
         return bool(self.suspect_pairs(q)[2].any())
 
-    def edge_suspects(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float, *,
-                      first_only: bool = False, tier: int = -1) -> tuple[np.ndarray, int]:
+    def edge_suspects(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float, *, first_only: bool = False,
+                      tier: int = -1, anchors: FloatArray | None = None,
+                      anchor_radius_sq: float = 0.0) -> tuple[np.ndarray, np.ndarray, int]:
         """Suspect states of the straight segment, in `CollisionWorld.motion_valid` order.
 
         The segment has `steps` = max(1, ceil(max|b - a| / resolution_rad)) intervals; state k is
         a + (b - a) * (k / steps). They are visited as `motion_valid` does: k = steps (q_b),
-        then the interior in bisection order, then k = 0 (q_a).
+        then the interior in bisection order, then k = 0 (q_a). Every state keeps the clearance of
+        `tier`, or with `anchors` (K, dof) that of its own tier (`edge_lanes.state_tier`: by its
+        squared joint-space distance to the nearest anchor against `anchor_radius_sq`).
 
         Returns:
             (M,) int64 step indices k of the suspect states in visiting order (at most one when
-            `first_only`), and `steps`.
+            `first_only`), (M,) int64 the tier each was checked at, and `steps`.
         """
-        # This runs once per tree edge: the step count is left to the compiled code (numpy's
-        # reductions on 7 numbers cost microseconds), and the buffers grow only when too short.
+        # Once per tree edge: the step count is left to the compiled code (numpy's reductions on
+        # 7 numbers cost microseconds), and the buffers grow only when too short.
         a = np.ascontiguousarray(q_a, dtype=np.float64)
         b = np.ascontiguousarray(q_b, dtype=np.float64)
         if not resolution_rad > 0 or resolution_rad == math.inf:  # NaN fails the first test
             raise ValueError(f"resolution_rad must be finite and > 0, got {resolution_rad}")
+        anchored = anchors is not None and anchors.shape[0] > 0
+        args = (np.ascontiguousarray(anchors, dtype=np.float64) if anchored else self._no_anchors,
+                float(anchor_radius_sq), self._tier_clearance)
+        world = self._lane_worlds[-1 if anchored else tier]
         # Plain float and bool: an int would make numba compile another specialisation.
         resolution_rad, first_only = float(resolution_rad), bool(first_only)
-        count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue,
-                                          self._lane_worlds[tier])
+        count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._tier_buffer,
+                                          self._queue, world, *args)
         if count < 0:
             # order (steps + 1 entries) and the FIFO of spans (< 2 * steps + 1 entries) share `_queue`.
             self._step_buffer = np.zeros(2 * steps + 2, dtype=np.int64)
+            self._tier_buffer = np.zeros(2 * steps + 2, dtype=np.int64)
             self._queue = np.zeros((2 * steps + 2, 2), dtype=np.int64)
-            count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue,
-                                              self._lane_worlds[tier])
+            count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._tier_buffer,
+                                              self._queue, world, *args)
         if count == 0:
-            return _NO_STEPS, steps  # most edges: no slice and copy (read-only, shared)
-        return self._step_buffer[:count].copy(), steps
+            return _NO_STEPS, _NO_STEPS, steps  # most edges: no slice and copy (read-only, shared)
+        tiers = self._tier_buffer[:count].copy() if anchored else np.full(count, tier, dtype=np.int64)
+        return self._step_buffer[:count].copy(), tiers, steps
 
 
 _NO_STEPS = np.zeros(0, dtype=np.int64)
@@ -455,40 +469,3 @@ def _to_joint_frame(kin: LinkKinematics, link_index: np.ndarray, points_link: Fl
     points = np.asarray(points_link, dtype=np.float64).reshape(-1, 3)
     rotated = np.einsum("nij,nj->ni", kin.joint_from_link_rotation[index], points)
     return np.ascontiguousarray(rotated + kin.joint_from_link_translation_m[index])
-
-
-def _world_radii(shapes: Sequence[LinkShape], model: RobotSphereModel, growth_m: FloatArray,
-                 padding_m: float) -> FloatArray:
-    """Radii with which each shape's spheres cover its PADDED hull (`grow_hull`, what FCL checks
-    against the world): each sphere grows by what its own part of the grown hull needs (between
-    the padding and the hull's worst growth `growth_m`), not all by the worst."""
-    radii = np.array(model.radii_m, dtype=np.float64)
-    if padding_m <= 0:
-        return radii
-    for s, shape in enumerate(shapes):
-        mine = np.flatnonzero(model.shape_index == s)
-        grown, _ = grow_hull(shape.hull_vertices, shape.hull_triangles, padding_m)
-        fitted = radii_covering(grown, model.centers_link_m[mine], model.radii_m[mine] + padding_m)
-        uniform = model.radii_m[mine] + growth_m[s]
-        # Each is a cover of the grown hull on its own (mixing them per sphere is not): keep the smaller.
-        radii[mine] = fitted if np.sum(fitted**3) <= np.sum(uniform**3) else uniform
-    return radii
-
-
-def _padded_growth_m(vertices: FloatArray, triangles: np.ndarray, padding_m: float) -> float:
-    """Hausdorff distance from `grow_hull(hull, padding)` to the hull [m] (>= padding_m), via FCL."""
-    if padding_m <= 0:
-        return 0.0
-    grown, _ = grow_hull(vertices, triangles, padding_m)
-    faces = np.hstack([np.full((len(triangles), 1), 3, dtype=np.int64), triangles]).ravel()
-    hull = fcl.CollisionObject(fcl.Convex(np.ascontiguousarray(vertices), len(triangles), faces), fcl.Transform())
-    request = fcl.DistanceRequest()
-    worst = padding_m
-    point = fcl.CollisionObject(fcl.Sphere(1e-9), fcl.Transform())
-    for v in grown:
-        point.setTranslation(v)
-        worst = max(worst, float(fcl.distance(point, hull, request, fcl.DistanceResult())))
-    return worst + 1e-6
-
-
-# --- compiled core ---------------------------------------------------------------------------------

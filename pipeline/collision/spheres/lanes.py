@@ -12,8 +12,10 @@ Sphere centers are stored in their joint's frame (the link placement folded in),
 frames are never formed. The voxel and attached-sphere tests stay per lane: they are rare
 (occupancy maps, grasped objects) and branchy.
 
-An edge's states are checked in `CollisionWorld.motion_valid` order, `LANES` at a time; the
-first lanes of a blocked edge (its end, midpoint, quarter points...) usually flag it at once.
+An edge's states are checked in `CollisionWorld.motion_valid` order, `LANES` at a time
+(`edge_lanes.py`); the first lanes of a blocked edge (its end, midpoint, quarter points...)
+usually flag it at once. Each lane keeps its own clearance from the occupied voxels
+(`lane_clearance`): near a query's start and goals it shrinks (`surface_allowance.py`).
 """
 
 from __future__ import annotations
@@ -65,7 +67,7 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     # attached spheres
     "att_center_joint", "att_radius", "att_radius_world", "att_joint", "att_skip",
     # scratch: lane inputs and outputs, frames, placed spheres
-    "cos_lanes", "sin_lanes", "q_lanes", "flags", "frames", "sphere_lanes", "bound_lanes", "placed", "near",
+    "cos_lanes", "sin_lanes", "q_lanes", "lane_clearance", "flags", "frames", "sphere_lanes", "bound_lanes", "placed", "near",
     "distance", "att_lanes", "pair_near",
 )
 """What the lane kernels read, as one object: a call from Python unboxes one reference (~0.6 us)
@@ -253,7 +255,8 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     then are incomplete): enough for an edge's first suspect.
 
     Args:
-        lanes: Lanes to check, 1..LANES; the states are in world.cos_lanes, sin_lanes and q_lanes.
+        lanes: Lanes to check, 1..LANES; the states are in world.cos_lanes, sin_lanes and q_lanes,
+            the clearance each keeps from the occupied voxels in world.lane_clearance.
         world: The robot, scene and scratch buffers (`LaneWorld`).
     """
     frames, sphere_lanes, bound_lanes, placed = world.frames, world.sphere_lanes, world.bound_lanes, world.placed
@@ -264,7 +267,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     obj_kind, obj_rotation, obj_translation = world.obj_kind, world.obj_rotation, world.obj_translation
     obj_param, obj_bound = world.obj_param, world.obj_bound
     has_grid, grid, grid_origin, grid_voxel = world.has_grid, world.grid, world.grid_origin, world.grid_voxel
-    grid_box, occupied, grid_clearance = world.grid_box, world.occupied, world.grid_clearance
+    grid_box, occupied, lane_clearance = world.grid_box, world.occupied, world.lane_clearance
     fine, fine_origin, fine_voxel = world.fine, world.fine_origin, world.fine_voxel
     fine_slot, fine_box = world.fine_slot, world.fine_box
     att_center_joint, att_radius, att_radius_world = world.att_center_joint, world.att_radius, world.att_radius_world
@@ -317,12 +320,12 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
         if has_grid:
             for w in range(lanes):
                 if flags[w] or voxel_distance(bound_lanes[li, 0, w], bound_lanes[li, 1, w], bound_lanes[li, 2, w],
-                                               grid, grid_origin, grid_voxel, grid_box) > bound_world[li] + grid_clearance:
+                                               grid, grid_origin, grid_voxel, grid_box) > bound_world[li] + lane_clearance[w]:
                     continue
                 _ensure_placed(lanes, li, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
                 for s in range(link_start[li], link_start[li + 1]):
                     x, y, z = sphere_lanes[s, 0, w], sphere_lanes[s, 1, w], sphere_lanes[s, 2, w]
-                    reach = radii_world[s] + grid_clearance + CONTACT_EPS_M
+                    reach = radii_world[s] + lane_clearance[w] + CONTACT_EPS_M
                     if voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach and touches_cells(
                             x, y, z, reach, occupied, grid_origin, grid_voxel, fine, fine_origin, fine_voxel, fine_slot,
                             fine_box):
@@ -395,7 +398,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
                 if object_distance(x, y, z, k, obj_kind, obj_rotation, obj_translation, obj_param) <= reach:
                     flags[w] = True
                     break
-            reach += grid_clearance
+            reach += lane_clearance[w]
             if flags[w] or (has_grid and voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach
                             and touches_cells(x, y, z, reach, occupied, grid_origin, grid_voxel, fine, fine_origin,
                                               fine_voxel, fine_slot, fine_box)):
@@ -425,75 +428,6 @@ def state_suspect_lanes(q: FloatArray, world: LaneWorld) -> bool:  # pragma: no 
     cos_lanes, sin_lanes, q_lanes = world.cos_lanes, world.sin_lanes, world.q_lanes
     for j in range(q.shape[0]):
         cos_lanes[j, 0], sin_lanes[j, 0], q_lanes[j, 0] = math.cos(q[j]), math.sin(q[j]), q[j]
+    world.lane_clearance[0] = world.grid_clearance
     lanes_suspect(1, world, True)
     return world.flags[0]
-
-
-@nb.njit(cache=True)
-def edge_suspect_steps(a: FloatArray, b: FloatArray, resolution: float, first_only: bool, out: IntArray, queue: IntArray,
-                       world: LaneWorld) -> tuple[int, int]:  # pragma: no cover
-    """(count of suspects written to `out`, steps), or (-1, steps) when `out` and `queue` have
-    fewer than 2 * steps + 2 rows. See `SphereBroadPhase.edge_suspects`."""
-    dof = a.shape[0]
-    longest = 0.0
-    for j in range(dof):
-        longest = max(longest, abs(b[j] - a[j]))
-    steps = max(1, int(math.ceil(longest / resolution - 1e-9)))
-    if out.shape[0] < 2 * steps + 2 or queue.shape[0] < 2 * steps + 2:
-        return -1, steps
-    # cos and sin of every state's joints by a rotation per step (a sine and a cosine per joint
-    # and state cost a third of the kinematics), taken afresh every 16 steps against drift.
-    trig = np.empty((steps + 1, 2, dof))
-    for j in range(dof):
-        step = (b[j] - a[j]) / steps
-        c_step, s_step = math.cos(step), math.sin(step)
-        c = s = 0.0
-        for k in range(steps + 1):
-            if k % 16 == 0:
-                angle = a[j] + (b[j] - a[j]) * (k / steps)
-                c, s = math.cos(angle), math.sin(angle)
-            else:
-                c, s = c * c_step - s * s_step, s * c_step + c * s_step
-            trig[k, 0, j], trig[k, 1, j] = c, s
-    # Visiting order of CollisionWorld.motion_valid: b, interior in bisection (breadth-first) order, a.
-    order = queue[:, 0]
-    spans = queue[:, 1]
-    n_order = 0
-    order[n_order] = steps
-    n_order += 1
-    # The FIFO of (lo, hi) spans lives in queue[:, 1] as lo * (steps + 1) + hi.
-    head, tail = 0, 1
-    spans[0] = steps  # lo = 0, hi = steps
-    while head < tail:
-        lo, hi = spans[head] // (steps + 1), spans[head] % (steps + 1)
-        head += 1
-        if hi - lo < 2:
-            continue
-        mid = (lo + hi) // 2
-        order[n_order] = mid
-        n_order += 1
-        spans[tail] = lo * (steps + 1) + mid
-        spans[tail + 1] = mid * (steps + 1) + hi
-        tail += 2
-    order[n_order] = 0
-    n_order += 1
-    cos_lanes, sin_lanes, q_lanes, flags = world.cos_lanes, world.sin_lanes, world.q_lanes, world.flags
-    count = 0
-    for first in range(0, n_order, LANES):
-        n = min(LANES, n_order - first)
-        # A short chunk is padded to a whole number of vectors (VECTOR lanes) with copies.
-        lanes = min(LANES, (n + VECTOR - 1) // VECTOR * VECTOR)
-        for w in range(lanes):
-            k = order[first + min(w, n - 1)]
-            t = k / steps
-            for j in range(dof):
-                cos_lanes[j, w], sin_lanes[j, w] = trig[k, 0, j], trig[k, 1, j]
-                q_lanes[j, w] = a[j] + (b[j] - a[j]) * t
-        lanes_suspect(lanes, world, first_only)
-        for w in range(n):
-            if flags[w]:
-                out[count] = order[first + w]
-                count += 1
-                if first_only:
-                    return count, steps
-    return count, steps

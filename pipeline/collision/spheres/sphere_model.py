@@ -18,15 +18,17 @@ and `tolerance_m` is added to every radius. k grows from 1 until no sphere reach
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
+import fcl
 import numpy as np
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 
 from robonav.pipeline.collision.spheres.table_store import stored, table_key
+from robonav.pipeline.robot.link_geometry import LinkShape, grow_hull
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.types import FloatArray, IntArray
 
@@ -403,3 +405,37 @@ def _fibonacci_directions(count: int) -> FloatArray:
     polar = np.arccos(1 - 2 * i / count)
     azimuth = math.pi * (1 + 5**0.5) * i
     return np.column_stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)])
+
+
+def world_radii(shapes: Sequence[LinkShape], model: RobotSphereModel, growth_m: FloatArray,
+                 padding_m: float) -> FloatArray:
+    """Radii with which each shape's spheres cover its PADDED hull (`grow_hull`, what FCL checks
+    against the world): each sphere grows by what its own part of the grown hull needs (between
+    the padding and the hull's worst growth `growth_m`), not all by the worst."""
+    radii = np.array(model.radii_m, dtype=np.float64)
+    if padding_m <= 0:
+        return radii
+    for s, shape in enumerate(shapes):
+        mine = np.flatnonzero(model.shape_index == s)
+        grown, _ = grow_hull(shape.hull_vertices, shape.hull_triangles, padding_m)
+        fitted = radii_covering(grown, model.centers_link_m[mine], model.radii_m[mine] + padding_m)
+        uniform = model.radii_m[mine] + growth_m[s]
+        # Each is a cover of the grown hull on its own (mixing them per sphere is not): keep the smaller.
+        radii[mine] = fitted if np.sum(fitted**3) <= np.sum(uniform**3) else uniform
+    return radii
+
+
+def padded_growth_m(vertices: FloatArray, triangles: np.ndarray, padding_m: float) -> float:
+    """Hausdorff distance from `grow_hull(hull, padding)` to the hull [m] (>= padding_m), via FCL."""
+    if padding_m <= 0:
+        return 0.0
+    grown, _ = grow_hull(vertices, triangles, padding_m)
+    faces = np.hstack([np.full((len(triangles), 1), 3, dtype=np.int64), triangles]).ravel()
+    hull = fcl.CollisionObject(fcl.Convex(np.ascontiguousarray(vertices), len(triangles), faces), fcl.Transform())
+    request = fcl.DistanceRequest()
+    worst = padding_m
+    point = fcl.CollisionObject(fcl.Sphere(1e-9), fcl.Transform())
+    for v in grown:
+        point.setTranslation(v)
+        worst = max(worst, float(fcl.distance(point, hull, request, fcl.DistanceResult())))
+    return worst + 1e-6

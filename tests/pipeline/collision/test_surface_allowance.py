@@ -113,15 +113,40 @@ def test_near_surface_spheres_are_conservative(panda: RobotModel) -> None:
     assert 0 < touching < len(states)
 
 
-def test_edge_tier_is_the_strictest_of_the_segment(panda: RobotModel) -> None:
+def test_each_state_of_an_edge_keeps_the_clearance_of_its_own_tier(panda: RobotModel) -> None:
+    """An edge leaving a goal near a surface: the broad phase checks each state at the clearance
+    of its own tier (the goal at none), not at the strictest tier of its ends; the edge is free
+    exactly when each of its states is."""
     home = panda.home_position_rad
-    world = _map_world(panda, _wall_points(0.9, np.array([0.9, 0.0, 0.5])))
-    step = np.full(panda.dof, 1.0 / math.sqrt(panda.dof))
+    target = panda.frame_pose(home, "panda_grasptarget")[:3, 3]
+    world = _map_world(panda, _wall_points(_hand_front_x(panda, home) + 0.012, target))
+    broad = world._broad_phase  # noqa: SLF001
+    rng = np.random.default_rng(4)
+    free_edges = blocked_edges = fewer = 0
     with world.anchored(home[None], 1.0):
-        assert world.edge_tier(home, home + 0.1 * step) == 0
-        tiers = [world.clearance_tier(home + t * 0.6 * step) for t in np.linspace(0, 1, 11)]
-        assert world.edge_tier(home, home + 0.6 * step) == max(tiers) == 2
-        assert world.edge_tier(home + 2 * step, home + 3 * step) == -1
+        anchors, radius_sq = world.tier_anchors
+        assert anchors.shape == (1, panda.dof) and radius_sq == 1.0
+        for length in (0.1, 0.3, 0.6, 0.9, 1.3, 1.3, 1.3):
+            step = rng.normal(size=panda.dof)
+            b = home + length * step / np.linalg.norm(step)
+            suspects, tiers, steps = broad.edge_suspects(home, b, 0.02, anchors=anchors, anchor_radius_sq=radius_sq)
+            states = [home + (b - home) * (k / steps) for k in range(steps + 1)]
+            own = [world.clearance_tier(q) for q in states]
+            expected = {k for k in range(steps + 1) if broad.state_suspect(states[k], tier=own[k])}
+            assert set(suspects.tolist()) == expected and len(suspects) == len(expected)
+            assert tiers.tolist() == [own[k] for k in suspects]
+            # At the clearance of the edge's far end (the strictest), more states were flagged.
+            fewer += len(expected) < sum(broad.state_suspect(q, tier=max(own, key=_strictness)) for q in states)
+            free = world.motion_valid(home, b, 0.02)
+            assert free == all(not world.in_collision(q) for q in states)
+            free_edges += free
+            blocked_edges += not free
+    assert free_edges and blocked_edges and fewer
+
+
+def _strictness(tier: int) -> int:
+    """Order of tiers by the clearance they keep (-1, far from the anchors, keeps it whole)."""
+    return TIERS if tier < 0 else tier
 
 
 def test_map_layer_input_errors(panda: RobotModel) -> None:

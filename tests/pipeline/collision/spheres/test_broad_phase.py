@@ -9,7 +9,8 @@ import octomap
 import pytest
 
 from robonav.pipeline.collision.edges import bisection_order
-from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase, _padded_growth_m
+from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
+from robonav.pipeline.collision.spheres.sphere_model import padded_growth_m
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.link_geometry import grow_hull
@@ -116,10 +117,10 @@ def test_edge_visits_states_in_motion_valid_order(panda: RobotModel) -> None:
     # A box around the whole robot: every state is suspect, so the order is visible.
     broad.set_objects([SceneObject("all", "box", (0.0, 0.0, 0.5), size_m=(3.0, 3.0, 3.0))])
     a, b = panda.home_position_rad, panda.home_position_rad + 0.37
-    suspects, steps = broad.edge_suspects(a, b, 0.01)
-    assert steps == 37
+    suspects, tiers, steps = broad.edge_suspects(a, b, 0.01)
+    assert steps == 37 and set(tiers.tolist()) == {-1}
     assert suspects.tolist() == [37, *bisection_order(37), 0]
-    first, _ = broad.edge_suspects(a, b, 0.01, first_only=True)
+    first, _, _ = broad.edge_suspects(a, b, 0.01, first_only=True)
     assert first.tolist() == [37]
     broad.clear_objects()
     assert broad.edge_suspects(a, b, 0.01)[0].size == 0
@@ -218,7 +219,7 @@ def test_edge_suspects_are_the_suspect_states_of_the_edge(panda: RobotModel,
     flagged = 0
     for a in starts:
         b = np.clip(a + rng.uniform(-3.0, 3.0, panda.dof), panda.lower_limits_rad, panda.upper_limits_rad)
-        suspects, steps = broad.edge_suspects(a, b, 0.01)
+        suspects, _, steps = broad.edge_suspects(a, b, 0.01)
         expected = {k for k in range(steps + 1) if broad.state_suspect(a + (b - a) * (k / steps))}
         assert set(suspects.tolist()) == expected and len(suspects) == len(expected)
         flagged += len(expected)
@@ -292,7 +293,7 @@ def test_world_spheres_cover_the_padded_hulls_no_looser_than_the_worst_growth(pa
         samples = np.vstack([np.einsum("nk,nkj->nj", rng.dirichlet(np.ones(3), 3000), tri), grown])
         gap = np.linalg.norm(samples[:, None] - model.centers_link_m[mine][None], axis=2) - bp._radii_world[mine][None]
         assert np.max(np.min(gap, axis=1)) <= 0.0, shape.link
-        worst = _padded_growth_m(shape.hull_vertices, shape.hull_triangles, padding)
+        worst = padded_growth_m(shape.hull_vertices, shape.hull_triangles, padding)
         uniform = model.radii_m[mine] + worst
         assert np.sum(bp._radii_world[mine] ** 3) <= np.sum(uniform ** 3) + 1e-15, shape.link
         assert np.all(bp._radii_world[mine] >= model.radii_m[mine] + padding - 1e-9), shape.link

@@ -1,0 +1,122 @@
+"""An edge's states through the sphere broad phase, `LANES` at a time, each at its own clearance.
+
+The straight joint-space segment from a to b is cut into `steps` intervals; its states are
+visited in `CollisionWorld.motion_valid` order (b, the interior in bisection order, a) and go
+through `lanes_suspect` in chunks of `LANES`. Near a query's start and goals a map's clearance
+shrinks with the joint-space distance to the nearest anchor (`surface_allowance.py`); each
+lane's tier, and with it the clearance its spheres keep from the occupied voxels, is worked out
+here per state. Checking the whole edge at its strictest tier instead flagged every state of an
+edge leaving a goal that lies near a surface, and each flagged state was checked again on its
+own from Python at its own tier.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from robonav.pipeline.collision.spheres.lanes import LANES, VECTOR, LaneWorld, lanes_suspect
+from robonav.pipeline.types import FloatArray, IntArray
+
+
+@nb.njit(cache=True)
+def state_tier(q_lanes: FloatArray, w: int, anchors: FloatArray, radius_sq: float, tiers: int) -> int:  # pragma: no cover
+    """The clearance tier of lane w's state: t in [0, tiers) within radius_sq of an anchor
+    (`surface_allowance.clearance_tier`), -1 from there on or without anchors."""
+    nearest_sq = math.inf
+    for m in range(anchors.shape[0]):
+        total = 0.0
+        for j in range(anchors.shape[1]):
+            offset = anchors[m, j] - q_lanes[j, w]
+            total += offset * offset
+        nearest_sq = min(nearest_sq, total)
+    if tiers < 1 or nearest_sq >= radius_sq:
+        return -1
+    return min(tiers - 1, int(tiers * math.sqrt(nearest_sq / radius_sq)))
+
+
+@nb.njit(cache=True)
+def edge_suspect_steps(a: FloatArray, b: FloatArray, resolution: float, first_only: bool, out: IntArray,
+                       out_tier: IntArray, queue: IntArray, world: LaneWorld, anchors: FloatArray, radius_sq: float,
+                       tier_clearance: FloatArray) -> tuple[int, int]:  # pragma: no cover
+    """(count of suspects written to `out`, steps), or (-1, steps) when `out`, `out_tier` and
+    `queue` have fewer than 2 * steps + 2 rows. See `SphereBroadPhase.edge_suspects`.
+
+    With anchors (K, dof), K > 0, a state of tier t keeps tier_clearance[t] from the voxels and
+    one of tier -1 the last entry (tier_clearance has tiers + 1 entries), and `out_tier` gets each
+    suspect's tier; without, every state keeps world.grid_clearance and `out_tier` gets -1."""
+    dof = a.shape[0]
+    longest = 0.0
+    for j in range(dof):
+        longest = max(longest, abs(b[j] - a[j]))
+    steps = max(1, int(math.ceil(longest / resolution - 1e-9)))
+    if out.shape[0] < 2 * steps + 2 or out_tier.shape[0] < 2 * steps + 2 or queue.shape[0] < 2 * steps + 2:
+        return -1, steps
+    # cos and sin of every state's joints by a rotation per step (a sine and a cosine per joint
+    # and state cost a third of the kinematics), taken afresh every 16 steps against drift.
+    trig = np.empty((steps + 1, 2, dof))
+    for j in range(dof):
+        step = (b[j] - a[j]) / steps
+        c_step, s_step = math.cos(step), math.sin(step)
+        c = s = 0.0
+        for k in range(steps + 1):
+            if k % 16 == 0:
+                angle = a[j] + (b[j] - a[j]) * (k / steps)
+                c, s = math.cos(angle), math.sin(angle)
+            else:
+                c, s = c * c_step - s * s_step, s * c_step + c * s_step
+            trig[k, 0, j], trig[k, 1, j] = c, s
+    # Visiting order of CollisionWorld.motion_valid: b, interior in bisection (breadth-first) order, a.
+    order = queue[:, 0]
+    spans = queue[:, 1]
+    n_order = 0
+    order[n_order] = steps
+    n_order += 1
+    # The FIFO of (lo, hi) spans lives in queue[:, 1] as lo * (steps + 1) + hi.
+    head, tail = 0, 1
+    spans[0] = steps  # lo = 0, hi = steps
+    while head < tail:
+        lo, hi = spans[head] // (steps + 1), spans[head] % (steps + 1)
+        head += 1
+        if hi - lo < 2:
+            continue
+        mid = (lo + hi) // 2
+        order[n_order] = mid
+        n_order += 1
+        spans[tail] = lo * (steps + 1) + mid
+        spans[tail + 1] = mid * (steps + 1) + hi
+        tail += 2
+    order[n_order] = 0
+    n_order += 1
+    cos_lanes, sin_lanes, q_lanes, flags = world.cos_lanes, world.sin_lanes, world.q_lanes, world.flags
+    lane_clearance = world.lane_clearance
+    lane_tier = np.full(LANES, -1, dtype=np.int64)
+    tiers = tier_clearance.shape[0] - 1
+    anchored = anchors.shape[0] > 0
+    count = 0
+    for first in range(0, n_order, LANES):
+        n = min(LANES, n_order - first)
+        # A short chunk is padded to a whole number of vectors (VECTOR lanes) with copies.
+        lanes = min(LANES, (n + VECTOR - 1) // VECTOR * VECTOR)
+        for w in range(lanes):
+            k = order[first + min(w, n - 1)]
+            t = k / steps
+            for j in range(dof):
+                cos_lanes[j, w], sin_lanes[j, w] = trig[k, 0, j], trig[k, 1, j]
+                q_lanes[j, w] = a[j] + (b[j] - a[j]) * t
+            if anchored:
+                lane_tier[w] = state_tier(q_lanes, w, anchors, radius_sq, tiers)
+                lane_clearance[w] = tier_clearance[lane_tier[w]] if lane_tier[w] >= 0 else tier_clearance[tiers]
+            else:
+                lane_clearance[w] = world.grid_clearance
+        lanes_suspect(lanes, world, first_only)
+        for w in range(n):
+            if flags[w]:
+                out[count] = order[first + w]
+                out_tier[count] = lane_tier[w]
+                count += 1
+                if first_only:
+                    return count, steps
+    return count, steps
