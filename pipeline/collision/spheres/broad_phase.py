@@ -30,7 +30,15 @@ from collections.abc import Sequence
 import numpy as np
 
 from robonav.pipeline.collision.spheres.edge_lanes import edge_suspect_steps
-from robonav.pipeline.collision.spheres.grid_layers import NO_BOXES, NO_SLOTS, VoxelLayer, cell_boxes, cell_layer, voxel_layer
+from robonav.pipeline.collision.spheres.grid_layers import (
+    NO_BOXES,
+    NO_SLOTS,
+    VoxelLayer,
+    cell_boxes,
+    cell_layer,
+    column_ranges,
+    voxel_layer,
+)
 from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE
 from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld, state_suspect_lanes
 from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, suspect_pairs_of_state
@@ -242,6 +250,9 @@ class SphereBroadPhase:
                 cell = float(surface_cell_m)  # type: ignore[arg-type]
                 self._fine = cell_layer(np.floor(surface / cell).astype(np.int64), cell)
                 self._fine_slot, self._fine_box = cell_boxes(self._fine, self._coarse)
+        # The kernels test the voxels with cells, or the voxels themselves when cells are as large.
+        cells = self._fine is not None and self._fine.voxel != self._coarse.voxel
+        self._grid_column = column_ranges(self._fine_slot >= 0 if cells else self._coarse.occupied)
         self._has_grid = True
         self._clearances = [float(clearance_m) * t / tiers for t in range(tiers + 1)]
         self._refresh_args()
@@ -250,6 +261,7 @@ class SphereBroadPhase:
         self._coarse = VoxelLayer(np.zeros((1, 1, 1)), np.zeros(3), 1.0, np.zeros((2, 3)), np.zeros((1, 1, 1), dtype=np.bool_))
         self._fine = None
         self._fine_slot, self._fine_box = NO_SLOTS, NO_BOXES
+        self._grid_column = column_ranges(self._coarse.occupied)
         self._has_grid = False
         self._clearances = [0.0]
         self._refresh_args()
@@ -342,7 +354,8 @@ class SphereBroadPhase:
             obj_translation=self._obj_translation, obj_param=self._obj_param, obj_bound=self._obj_bound,
             has_grid=self._has_grid, grid=layer.field, grid_origin=layer.origin, grid_voxel=layer.voxel,
             grid_box=layer.box, occupied=layer.occupied, fine=fine.occupied, fine_origin=fine.origin,
-            fine_voxel=fine.voxel, fine_slot=self._fine_slot, fine_box=self._fine_box, grid_clearance=float(grid_clearance),
+            fine_voxel=fine.voxel, fine_slot=self._fine_slot, fine_box=self._fine_box, grid_column=self._grid_column,
+            grid_clearance=float(grid_clearance),
             att_center_joint=self._att_center_joint, att_radius=self._att_radius,
             att_radius_world=self._att_radius_world, att_joint=self._att_joint,
             att_skip=self._att_skip, att_lanes=self._att_lanes, **self._lane_scratch)

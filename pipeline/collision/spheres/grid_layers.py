@@ -79,5 +79,15 @@ def cell_boxes(fine: VoxelLayer, coarse: VoxelLayer) -> tuple[np.ndarray, np.nda
     return slot.reshape(coarse.occupied.shape), boxes
 
 
+def column_ranges(held: np.ndarray) -> np.ndarray:
+    """(I, J, 2) int64: per column of the grid `held` (I, J, K) bool, the first and last k that
+    holds something, or (K, -1) when none does (`kernels.touches_cells` skips what lies outside)."""
+    depth = held.shape[2]
+    any_held = held.any(axis=2)
+    first = np.where(any_held, held.argmax(axis=2), depth)
+    last = np.where(any_held, depth - 1 - held[..., ::-1].argmax(axis=2), -1)
+    return np.ascontiguousarray(np.stack([first, last], axis=-1), dtype=np.int64)
+
+
 NO_SLOTS = np.full((1, 1, 1), -1, dtype=np.int32)
 NO_BOXES = np.zeros((0, 6), dtype=np.int64)

@@ -64,7 +64,7 @@ def voxel_distance(x: float, y: float, z: float, grid: FloatArray, origin: Float
 @nb.njit(cache=True)
 def touches_cells(x: float, y: float, z: float, radius: float, occupied: BoolArray, origin: FloatArray, voxel: float,
                   fine: BoolArray, fine_origin: FloatArray, fine_voxel: float, fine_slot: IntArray,
-                  fine_box: IntArray) -> bool:
+                  fine_box: IntArray, column: IntArray) -> bool:
     """Whether the sphere touches an occupied cell of `fine`, a grid nested in the voxels'
     (`occupied`, cell side `voxel`) whose occupied cells lie in occupied voxels: the voxels
     the sphere touches first (`touches_voxels`' loop), then the box of their cells, then only
@@ -74,9 +74,11 @@ def touches_cells(x: float, y: float, z: float, radius: float, occupied: BoolArr
     (V, 6): the smallest box of `fine` indices (first i, j, k, then last i, j, k) holding the
     voxel's cells. A seen surface crosses a voxel as a slab a cell or two thick: a sphere near
     the voxel but off the slab is settled by one box distance instead of a loop over its cells
-    (a map's surface test ran at 2.5 times the cost of the voxels' before)."""
+    (a map's surface test ran at 2.5 times the cost of the voxels' before). `column` (I, J, 2):
+    per column of the voxels' grid the first and last k of a voxel with cells
+    (`grid_layers.column_ranges`), or of an occupied voxel when the cells are the voxels."""
     if fine_voxel == voxel:
-        return touches_voxels(x, y, z, radius, occupied, origin, voxel)
+        return touches_voxels(x, y, z, radius, occupied, origin, voxel, column)
     half = 0.5 * voxel
     lo_i = max(int(math.ceil((x - radius - origin[0]) / voxel - 0.5)), 0)
     hi_i = min(int(math.floor((x + radius - origin[0]) / voxel + 0.5)), occupied.shape[0] - 1)
@@ -86,18 +88,10 @@ def touches_cells(x: float, y: float, z: float, radius: float, occupied: BoolArr
     hi_k = min(int(math.floor((z + radius - origin[2]) / voxel + 0.5)), occupied.shape[2] - 1)
     r2 = radius * radius
     for i in range(lo_i, hi_i + 1):
-        cx = origin[0] + i * voxel
-        dx = max(abs(x - cx) - half, 0.0)
+        dx = max(abs(x - (origin[0] + i * voxel)) - half, 0.0)
         for j in range(lo_j, hi_j + 1):
-            cy = origin[1] + j * voxel
-            dy = max(abs(y - cy) - half, 0.0)
-            dxy = dx * dx + dy * dy
-            if dxy > r2:
-                continue
-            # Only the voxels of this column that the sphere reaches (a ball, not its box).
-            reach_z = math.sqrt(r2 - dxy)
-            first_k = max(int(math.ceil((z - reach_z - origin[2]) / voxel - 0.5)), lo_k)
-            last_k = min(int(math.floor((z + reach_z - origin[2]) / voxel + 0.5)), hi_k)
+            first_k, last_k, dxy = _column_reach(z, r2, dx, y, origin, voxel, j, lo_k, hi_k, column[i, j, 0],
+                                                 column[i, j, 1])
             for k in range(first_k, last_k + 1):
                 slot = fine_slot[i, j, k]
                 if slot < 0:
@@ -121,6 +115,28 @@ def touches_cells(x: float, y: float, z: float, radius: float, occupied: BoolArr
                                      fine_voxel):
                     return True
     return False
+
+
+@nb.njit(cache=True, inline="always")
+def _column_reach(z: float, r2: float, dx: float, y: float, origin: FloatArray, voxel: float, j: int, lo_k: int,
+                  hi_k: int, first_occupied: int, last_occupied: int) -> tuple[int, int, float]:
+    """The k range of column (., j) whose cubes a ball of squared radius r2 at (., y, z) may reach
+    (dx: its x distance to the column), cut to the column's occupied range (empty: first > last),
+    and the squared distance to the column in the xy plane.
+
+    Most columns a ball near a surface spans hold no occupied voxel, or only far above or below
+    it: their range settles them before any voxel is read (a sphere beside a 2 cm map's surface
+    read about 90 voxels, not 285, and was tested in half the time)."""
+    if first_occupied > hi_k or last_occupied < lo_k:
+        return 0, -1, 0.0
+    dy = max(abs(y - (origin[1] + j * voxel)) - 0.5 * voxel, 0.0)
+    dxy = dx * dx + dy * dy
+    if dxy > r2:
+        return 0, -1, dxy
+    reach_z = math.sqrt(r2 - dxy)
+    first_k = max(int(math.ceil((z - reach_z - origin[2]) / voxel - 0.5)), lo_k, first_occupied)
+    last_k = min(int(math.floor((z + reach_z - origin[2]) / voxel + 0.5)), hi_k, last_occupied)
+    return first_k, last_k, dxy
 
 
 @nb.njit(cache=True, inline="always")
@@ -152,14 +168,31 @@ def _touches_cells_in(x: float, y: float, z: float, r2: float, x0: float, x1: fl
 
 @nb.njit(cache=True, inline="always")
 def touches_voxels(x: float, y: float, z: float, radius: float, occupied: BoolArray, origin: FloatArray,
-                   voxel: float) -> bool:
-    """Whether the sphere touches an occupied cube: exact point-to-cube distances over the cells
-    its bounding box overlaps.
+                   voxel: float, column: IntArray) -> bool:
+    """Whether the sphere touches an occupied cube: exact point-to-cube distances over the cubes
+    its ball reaches, in the columns' occupied ranges (`column`, see `touches_cells`).
 
     The distance field alone is a lower bound loose by up to 1.7 voxels (the offset from the
     cell center plus half the cube's diagonal); this second step, taken only where the field
     says a sphere may touch, keeps spheres from flagging states FCL clears: of 1085 random
     Panda states beside a slab of 2 cm voxels (self-collision aside), 39 were flagged but
     free with the field alone, 21 with this step."""
-    return _touches_cells_in(x, y, z, radius * radius, x - radius, x + radius, y - radius, y + radius, z - radius,
-                             z + radius, occupied, origin, voxel)
+    half = 0.5 * voxel
+    lo_i = max(int(math.ceil((x - radius - origin[0]) / voxel - 0.5)), 0)
+    hi_i = min(int(math.floor((x + radius - origin[0]) / voxel + 0.5)), occupied.shape[0] - 1)
+    lo_j = max(int(math.ceil((y - radius - origin[1]) / voxel - 0.5)), 0)
+    hi_j = min(int(math.floor((y + radius - origin[1]) / voxel + 0.5)), occupied.shape[1] - 1)
+    lo_k = max(int(math.ceil((z - radius - origin[2]) / voxel - 0.5)), 0)
+    hi_k = min(int(math.floor((z + radius - origin[2]) / voxel + 0.5)), occupied.shape[2] - 1)
+    r2 = radius * radius
+    for i in range(lo_i, hi_i + 1):
+        dx = max(abs(x - (origin[0] + i * voxel)) - half, 0.0)
+        for j in range(lo_j, hi_j + 1):
+            first_k, last_k, dxy = _column_reach(z, r2, dx, y, origin, voxel, j, lo_k, hi_k, column[i, j, 0],
+                                                 column[i, j, 1])
+            for k in range(first_k, last_k + 1):
+                if occupied[i, j, k]:
+                    dz = max(abs(z - (origin[2] + k * voxel)) - half, 0.0)
+                    if dxy + dz * dz <= r2:
+                        return True
+    return False

@@ -63,7 +63,7 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "obj_kind", "obj_rotation", "obj_translation", "obj_param", "obj_bound",
     # occupied voxels: distance field, the occupied cells (maybe on a finer grid) and the clearance kept from them
     "has_grid", "grid", "grid_origin", "grid_voxel", "grid_box", "occupied", "fine", "fine_origin", "fine_voxel",
-    "fine_slot", "fine_box", "grid_clearance",
+    "fine_slot", "fine_box", "grid_column", "grid_clearance",
     # attached spheres
     "att_center_joint", "att_radius", "att_radius_world", "att_joint", "att_skip",
     # scratch: lane inputs and outputs, frames, placed spheres
@@ -269,7 +269,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     has_grid, grid, grid_origin, grid_voxel = world.has_grid, world.grid, world.grid_origin, world.grid_voxel
     grid_box, occupied, lane_clearance = world.grid_box, world.occupied, world.lane_clearance
     fine, fine_origin, fine_voxel = world.fine, world.fine_origin, world.fine_voxel
-    fine_slot, fine_box = world.fine_slot, world.fine_box
+    fine_slot, fine_box, grid_column = world.fine_slot, world.fine_box, world.grid_column
     att_center_joint, att_radius, att_radius_world = world.att_center_joint, world.att_radius, world.att_radius_world
     att_joint, att_skip = world.att_joint, world.att_skip
     pair_offset, pair_slot, pair_low, pair_step = world.pair_offset, world.pair_slot, world.pair_low, world.pair_step
@@ -328,7 +328,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
                     reach = radii_world[s] + lane_clearance[w] + CONTACT_EPS_M
                     if voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach and touches_cells(
                             x, y, z, reach, occupied, grid_origin, grid_voxel, fine, fine_origin, fine_voxel, fine_slot,
-                            fine_box):
+                            fine_box, grid_column):
                         flags[w] = True
                         break
             if _all_set(lanes, flags) or (stop_at_first_lane and flags[0]):
@@ -401,7 +401,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
             reach += lane_clearance[w]
             if flags[w] or (has_grid and voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach
                             and touches_cells(x, y, z, reach, occupied, grid_origin, grid_voxel, fine, fine_origin,
-                                              fine_voxel, fine_slot, fine_box)):
+                                              fine_voxel, fine_slot, fine_box, grid_column)):
                 flags[w] = True
                 break
             for lo in range(n_links):

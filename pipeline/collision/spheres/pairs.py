@@ -85,7 +85,7 @@ def suspect_pairs_of_state(q: FloatArray, world: LaneWorld, object_flags: BoolAr
                 reach = radii_world[s] + world.grid_clearance + CONTACT_EPS_M
                 if voxel_distance(x, y, z, grid, grid_origin, grid_voxel, grid_box) <= reach and touches_cells(
                         x, y, z, reach, occupied, grid_origin, grid_voxel, world.fine, world.fine_origin, world.fine_voxel,
-                        world.fine_slot, world.fine_box):
+                        world.fine_slot, world.fine_box, world.grid_column):
                     voxel_flags[li] = True
                     break
     for p in range(self_pairs.shape[0]):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from robonav.pipeline.collision.spheres.grid_layers import column_ranges
 from robonav.pipeline.collision.spheres.kernels import touches_cells, touches_voxels
 
 VOXEL_M = 0.02
@@ -38,7 +39,13 @@ def _boxes(occupied: np.ndarray, fine: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 def _touches_cells(x: float, y: float, z: float, radius_m: float, occupied: np.ndarray, origin: np.ndarray,
                    fine: np.ndarray, fine_origin: np.ndarray) -> bool:
-    return touches_cells(x, y, z, radius_m, occupied, origin, VOXEL_M, fine, fine_origin, CELL_M, *_boxes(occupied, fine))
+    slot, boxes = _boxes(occupied, fine)
+    return touches_cells(x, y, z, radius_m, occupied, origin, VOXEL_M, fine, fine_origin, CELL_M, slot, boxes,
+                         column_ranges(slot >= 0))
+
+
+def _touches_voxels(x: float, y: float, z: float, radius_m: float, occupied: np.ndarray, origin: np.ndarray) -> bool:
+    return touches_voxels(x, y, z, radius_m, occupied, origin, VOXEL_M, column_ranges(occupied))
 
 
 @pytest.mark.parametrize(("radius_m", "by_voxel", "by_cell"), [
@@ -51,7 +58,7 @@ def test_fine_cells_are_touched_only_where_the_sphere_reaches_them(radius_m: flo
                                                                   by_cell: bool) -> None:
     occupied, origin, fine, fine_origin = _grids((4, 4, 4))  # the cell [0.02, 0.025] in every axis
     x, y, z = 0.03, 0.03, 0.05  # 1 cm above the voxel's center column
-    assert touches_voxels(x, y, z, radius_m, occupied, origin, VOXEL_M) is by_voxel
+    assert _touches_voxels(x, y, z, radius_m, occupied, origin) is by_voxel
     assert _touches_cells(x, y, z, radius_m, occupied, origin, fine, fine_origin) is by_cell
 
 
@@ -66,8 +73,8 @@ def test_cells_as_large_as_the_voxels_are_the_voxels() -> None:
     occupied, origin, _, _ = _grids((0, 0, 0))
     for radius_m in (0.009, 0.011):
         assert touches_cells(0.03, 0.03, 0.05, radius_m, occupied, origin, VOXEL_M, occupied, origin, VOXEL_M,
-                             np.full((1, 1, 1), -1, dtype=np.int32), np.zeros((0, 6), dtype=np.int64)) \
-            is touches_voxels(0.03, 0.03, 0.05, radius_m, occupied, origin, VOXEL_M)
+                             np.full((1, 1, 1), -1, dtype=np.int32), np.zeros((0, 6), dtype=np.int64),
+                             column_ranges(occupied)) is _touches_voxels(0.03, 0.03, 0.05, radius_m, occupied, origin)
 
 
 def test_cell_boxes_give_the_answers_of_every_cell() -> None:
@@ -89,6 +96,7 @@ def test_cell_boxes_give_the_answers_of_every_cell() -> None:
     origin, fine_origin = np.full(3, 0.5 * VOXEL_M), np.full(3, 0.5 * CELL_M)
     lows = np.argwhere(fine) * CELL_M
     slot, boxes = _boxes(occupied, fine)
+    column = column_ranges(slot >= 0)
     touching = 0
     for x, y, z, radius_m in np.column_stack([rng.uniform(-0.02, 0.14, size=(2000, 3)), rng.uniform(0.0, 0.05, 2000)]):
         gap = np.maximum(np.maximum(lows - (x, y, z), (x, y, z) - (lows + CELL_M)), 0.0)
@@ -97,5 +105,40 @@ def test_cell_boxes_give_the_answers_of_every_cell() -> None:
             continue  # touching within rounding: either answer is right
         exact = bool(distance <= radius_m)
         touching += exact
-        assert touches_cells(x, y, z, radius_m, occupied, origin, VOXEL_M, fine, fine_origin, CELL_M, slot, boxes) is exact
+        assert touches_cells(x, y, z, radius_m, occupied, origin, VOXEL_M, fine, fine_origin, CELL_M, slot, boxes,
+                             column) is exact
     assert 200 < touching < 1800
+
+
+def test_voxels_give_the_answers_of_every_cube() -> None:
+    """Random voxels in columns of random extent (some empty, some with gaps), random spheres: a
+    sphere touches the voxels exactly when one cube is within its radius."""
+    rng = np.random.default_rng(8)
+    occupied = np.zeros((8, 8, 10), dtype=np.bool_)
+    for i, j in np.ndindex(8, 8):
+        if rng.random() < 0.6:
+            low = int(rng.integers(10))
+            occupied[i, j, low:low + int(rng.integers(1, 5))] = True
+            occupied[i, j, int(rng.integers(10))] = rng.random() < 0.3
+    origin = np.full(3, 0.5 * VOXEL_M)
+    lows = np.argwhere(occupied) * VOXEL_M
+    column = column_ranges(occupied)
+    touching = 0
+    for x, y, z, radius_m in np.column_stack([rng.uniform(-0.03, 0.2, size=(2000, 3)), rng.uniform(0.0, 0.05, 2000)]):
+        gap = np.maximum(np.maximum(lows - (x, y, z), (x, y, z) - (lows + VOXEL_M)), 0.0)
+        distance = float(np.sqrt((gap ** 2).sum(axis=1)).min())
+        if abs(distance - radius_m) < 1e-9:
+            continue
+        exact = bool(distance <= radius_m)
+        touching += exact
+        assert touches_voxels(x, y, z, radius_m, occupied, origin, VOXEL_M, column) is exact
+    assert 200 < touching < 1800
+
+
+def test_column_ranges_hold_every_occupied_voxel() -> None:
+    held = np.zeros((2, 3, 5), dtype=np.bool_)
+    held[0, 0, [1, 3]] = True
+    held[1, 2, 4] = True
+    column = column_ranges(held)
+    assert column[0, 0].tolist() == [1, 3] and column[1, 2].tolist() == [4, 4]
+    assert column[0, 1].tolist() == [5, -1]  # none: an empty range
