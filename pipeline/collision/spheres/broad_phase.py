@@ -37,6 +37,7 @@ from robonav.pipeline.collision.spheres.grid_layers import (
     cell_boxes,
     cell_layer,
     column_ranges,
+    field_to_cell_boxes,
     voxel_layer,
 )
 from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE
@@ -250,6 +251,9 @@ class SphereBroadPhase:
                 cell = float(surface_cell_m)  # type: ignore[arg-type]
                 self._fine = cell_layer(np.floor(surface / cell).astype(np.int64), cell)
                 self._fine_slot, self._fine_box = cell_boxes(self._fine, self._coarse)
+                # Exact as far as a sphere's test reads it (its reach plus the lookup's offset).
+                reach = float(np.max(self._radii_world, initial=0.0)) + clearance_m + math.sqrt(3.0) * voxel_size_m
+                self._coarse = field_to_cell_boxes(self._coarse, self._fine, self._fine_slot, self._fine_box, reach)
         # The kernels test the voxels with cells, or the voxels themselves when cells are as large.
         cells = self._fine is not None and self._fine.voxel != self._coarse.voxel
         self._grid_column = column_ranges(self._fine_slot >= 0 if cells else self._coarse.occupied)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numba as nb
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
@@ -87,6 +88,55 @@ def column_ranges(held: np.ndarray) -> np.ndarray:
     first = np.where(any_held, held.argmax(axis=2), depth)
     last = np.where(any_held, depth - 1 - held[..., ::-1].argmax(axis=2), -1)
     return np.ascontiguousarray(np.stack([first, last], axis=-1), dtype=np.int64)
+
+
+def field_to_cell_boxes(coarse: VoxelLayer, fine: VoxelLayer, slot: np.ndarray, boxes: np.ndarray,
+                        reach_m: float) -> VoxelLayer:
+    """`coarse` with its distance field raised, up to `reach_m`, to the exact distance from each
+    cell center to the nearest box of `fine` cells (`cell_boxes`): still a lower bound on the
+    distance to the cells, which lie in the boxes.
+
+    The voxels' field bounds the distance to whole cubes from a cell's center less half a
+    cube's diagonal; a seen surface crosses a cube as a slab, about a centimetre inside that
+    bound. A sphere the loose bound sends to the cell test (`kernels.touches_cells`) mostly
+    touches nothing, and that test is most of an edge's cost on a map: on the edges of an MBM
+    `box` cloud plan, 18 cell tests an edge (2.5 touching) became 9, and an edge 39 -> 32 us.
+    Building it costs about 40 ms for a map of 19,000 voxels with cells."""
+    voxels = np.argwhere(slot >= 0)
+    rows = slot[voxels[:, 0], voxels[:, 1], voxels[:, 2]]
+    lows = fine.origin + (boxes[rows, :3] - 0.5) * fine.voxel
+    highs = fine.origin + (boxes[rows, 3:] + 0.5) * fine.voxel
+    nearest_sq = _box_distances_sq(coarse.field.shape, coarse.origin, coarse.voxel, lows, highs, float(reach_m))
+    return coarse._replace(field=np.maximum(coarse.field, np.sqrt(nearest_sq)))
+
+
+@nb.njit(cache=True)
+def _box_distances_sq(shape: tuple[int, int, int], origin: FloatArray, voxel: float, lows: FloatArray, highs: FloatArray,
+                      reach: float) -> FloatArray:  # pragma: no cover (compiled)
+    """Per cell center of a grid of `shape`, the squared distance to the nearest box [lows, highs]
+    (B, 3), at most reach**2: each box writes the cells within `reach` of it."""
+    nearest = np.full(shape, reach * reach)
+    for b in range(lows.shape[0]):
+        i0 = max(int(math.ceil((lows[b, 0] - reach - origin[0]) / voxel)), 0)
+        i1 = min(int(math.floor((highs[b, 0] + reach - origin[0]) / voxel)), shape[0] - 1)
+        j0 = max(int(math.ceil((lows[b, 1] - reach - origin[1]) / voxel)), 0)
+        j1 = min(int(math.floor((highs[b, 1] + reach - origin[1]) / voxel)), shape[1] - 1)
+        k0 = max(int(math.ceil((lows[b, 2] - reach - origin[2]) / voxel)), 0)
+        k1 = min(int(math.floor((highs[b, 2] + reach - origin[2]) / voxel)), shape[2] - 1)
+        for i in range(i0, i1 + 1):
+            x = origin[0] + i * voxel
+            dx = max(lows[b, 0] - x, 0.0, x - highs[b, 0])
+            for j in range(j0, j1 + 1):
+                y = origin[1] + j * voxel
+                dy = max(lows[b, 1] - y, 0.0, y - highs[b, 1])
+                dxy = dx * dx + dy * dy
+                if dxy >= reach * reach:
+                    continue
+                for k in range(k0, k1 + 1):
+                    z = origin[2] + k * voxel
+                    dz = max(lows[b, 2] - z, 0.0, z - highs[b, 2])
+                    nearest[i, j, k] = min(nearest[i, j, k], dxy + dz * dz)
+    return nearest
 
 
 NO_SLOTS = np.full((1, 1, 1), -1, dtype=np.int32)
