@@ -428,7 +428,8 @@ class SphereBroadPhase:
         if not resolution_rad > 0 or resolution_rad == math.inf:  # NaN fails the first test
             raise ValueError(f"resolution_rad must be finite and > 0, got {resolution_rad}")
         anchored = anchors is not None and anchors.shape[0] > 0
-        args = (np.ascontiguousarray(anchors, dtype=np.float64) if anchored else self._no_anchors,
+        # Writeable and C-ordered always: another array type would compile another specialisation.
+        args = (np.require(anchors, np.float64, ("C", "W")) if anchored else self._no_anchors,
                 float(anchor_radius_sq), self._tier_clearance)
         world = self._lane_worlds[-1 if anchored else tier]
         # Plain float and bool: an int would make numba compile another specialisation.
