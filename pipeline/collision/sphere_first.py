@@ -88,10 +88,10 @@ class SphereFirstChecks:
         first, tiers, steps = edge(a, b, resolution_rad, first_only=True, anchors=anchors, anchor_radius_sq=radius_sq)
         if first.size == 0:
             return True
-        if not self._suspect_free(a + (b - a) * (first[0] / steps), exact, int(tiers[0])):
+        if not self._suspect_free(a + (b - a) * (first[0] / steps), exact, -1 if tiers is None else int(tiers[0])):
             return False
         suspects, tiers, _ = edge(a, b, resolution_rad, anchors=anchors, anchor_radius_sq=radius_sq)
-        for k, tier in zip(suspects[1:], tiers[1:]):
-            if not self._suspect_free(a + (b - a) * (k / steps), exact, int(tier)):
+        for i in range(1, suspects.size):
+            if not self._suspect_free(a + (b - a) * (suspects[i] / steps), exact, -1 if tiers is None else int(tiers[i])):
                 return False
         return True

@@ -144,11 +144,11 @@ class SurfaceAllowance:
         return self._check(q, first_only=first_only, padded=padded, tier=tier)
 
     @property
-    def tier_anchors(self) -> tuple[FloatArray, float]:
-        """The anchors (K, dof) and squared radius the clearance tiers are measured by; no anchors
+    def tier_anchors(self) -> tuple[FloatArray | None, float]:
+        """The anchors (K, dof) and squared radius the clearance tiers are measured by; None
         where `clearance_tier` is -1 for every state."""
         if self._surface_octree is None or not self._anchors.shape[0] or self._anchor_radius_sq <= 0:
-            return self._anchors[:0], 0.0
+            return None, 0.0
         return self._anchors, self._anchor_radius_sq
 
     def touches_cubes(self: CollisionWorld, q: FloatArray, centers_m: FloatArray, side_m: float) -> bool:

@@ -150,8 +150,9 @@ class SphereBroadPhase:
             flags=np.zeros(LANES, dtype=np.bool_), frames=self._kin.new_lane_frames(LANES),
             sphere_lanes=np.zeros((self._centers_link.shape[0], 3, LANES)), bound_lanes=np.zeros((n_links, 3, LANES)),
             placed=np.zeros(n_links, dtype=np.bool_), near=np.zeros(LANES, dtype=np.bool_), distance=np.zeros(LANES),
-            pair_near=np.zeros(LANES, dtype=np.bool_), lane_clearance=np.zeros(LANES))
-        self._step_buffer, self._tier_buffer = np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)
+            pair_near=np.zeros(LANES, dtype=np.bool_), lane_clearance=np.zeros(LANES),
+            lane_tier=np.zeros(LANES, dtype=np.int64))
+        self._step_buffer = np.zeros((1, 2), dtype=np.int64)
         self._queue, self._no_anchors = np.zeros((1, 2), dtype=np.int64), np.zeros((0, dof))
         self.clear_objects()
         self.clear_occupancy()
@@ -330,10 +331,10 @@ class SphereBroadPhase:
             return
         # Every tier keeps its clearance from the surface cells when there are some (the seen
         # points, not the voxels that quantise them), else from the voxels.
+        self._tier_clearance = np.array(self._clearances, dtype=np.float64)
         worlds = {c: self._new_lane_world(c, self._fine) for c in set(self._clearances)}
         self._lane_worlds = [worlds[c] for c in self._clearances]
         self._lane_world = self._lane_worlds[-1]
-        self._tier_clearance = np.array(self._clearances, dtype=np.float64)
         n_links = self._link_start.shape[0] - 1
         self._pair_outputs = (np.zeros((n_links, self._obj_kind.shape[0]), dtype=np.bool_),
                               np.zeros(n_links, dtype=np.bool_), np.zeros(self._self_pairs.shape[0], dtype=np.bool_),
@@ -359,7 +360,7 @@ class SphereBroadPhase:
             has_grid=self._has_grid, grid=layer.field, grid_origin=layer.origin, grid_voxel=layer.voxel,
             grid_box=layer.box, occupied=layer.occupied, fine=fine.occupied, fine_origin=fine.origin,
             fine_voxel=fine.voxel, fine_slot=self._fine_slot, fine_box=self._fine_box, grid_column=self._grid_column,
-            grid_clearance=float(grid_clearance),
+            grid_clearance=float(grid_clearance), tier_clearance=self._tier_clearance,
             att_center_joint=self._att_center_joint, att_radius=self._att_radius,
             att_radius_world=self._att_radius_world, att_joint=self._att_joint,
             att_skip=self._att_skip, att_lanes=self._att_lanes, **self._lane_scratch)
@@ -408,7 +409,7 @@ class SphereBroadPhase:
 
     def edge_suspects(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float, *, first_only: bool = False,
                       tier: int = -1, anchors: FloatArray | None = None,
-                      anchor_radius_sq: float = 0.0) -> tuple[np.ndarray, np.ndarray, int]:
+                      anchor_radius_sq: float = 0.0) -> tuple[np.ndarray, np.ndarray | None, int]:
         """Suspect states of the straight segment, in `CollisionWorld.motion_valid` order.
 
         The segment has `steps` = max(1, ceil(max|b - a| / resolution_rad)) intervals; state k is
@@ -419,7 +420,8 @@ class SphereBroadPhase:
 
         Returns:
             (M,) int64 step indices k of the suspect states in visiting order (at most one when
-            `first_only`), (M,) int64 the tier each was checked at, and `steps`.
+            `first_only`), with anchors (M,) int64 the tier each was checked at (else None: all
+            at `tier`), and `steps`.
         """
         # Once per tree edge: the step count is left to the compiled code (numpy's reductions on
         # 7 numbers cost microseconds), and the buffers grow only when too short.
@@ -429,24 +431,26 @@ class SphereBroadPhase:
             raise ValueError(f"resolution_rad must be finite and > 0, got {resolution_rad}")
         anchored = anchors is not None and anchors.shape[0] > 0
         # Writeable and C-ordered always: another array type would compile another specialisation.
-        args = (np.require(anchors, np.float64, ("C", "W")) if anchored else self._no_anchors,
-                float(anchor_radius_sq), self._tier_clearance)
+        anchors = np.require(anchors, np.float64, ("C", "W")) if anchored else self._no_anchors
         world = self._lane_worlds[-1 if anchored else tier]
         # Plain float and bool: an int would make numba compile another specialisation.
         resolution_rad, first_only = float(resolution_rad), bool(first_only)
-        count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._tier_buffer,
-                                          self._queue, world, *args)
+        count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue, world,
+                                          anchors, float(anchor_radius_sq))
         if count < 0:
             # order (steps + 1 entries) and the FIFO of spans (< 2 * steps + 1 entries) share `_queue`.
-            self._step_buffer = np.zeros(2 * steps + 2, dtype=np.int64)
-            self._tier_buffer = np.zeros(2 * steps + 2, dtype=np.int64)
+            self._step_buffer = np.zeros((2 * steps + 2, 2), dtype=np.int64)
             self._queue = np.zeros((2 * steps + 2, 2), dtype=np.int64)
-            count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._tier_buffer,
-                                              self._queue, world, *args)
+            count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue, world,
+                                              anchors, float(anchor_radius_sq))
+        # Most edges have no suspect: no slice and copy (read-only, shared); without anchors every
+        # state was checked at `tier`, and no tiers are copied (this runs for every blocked edge).
         if count == 0:
-            return _NO_STEPS, _NO_STEPS, steps  # most edges: no slice and copy (read-only, shared)
-        tiers = self._tier_buffer[:count].copy() if anchored else np.full(count, tier, dtype=np.int64)
-        return self._step_buffer[:count].copy(), tiers, steps
+            return _NO_STEPS, (_NO_STEPS if anchored else None), steps
+        if not anchored:
+            return self._step_buffer[:count, 0].copy(), None, steps
+        found = self._step_buffer[:count].copy()
+        return found[:, 0], found[:, 1], steps
 
 
 _NO_STEPS = np.zeros(0, dtype=np.int64)

@@ -39,20 +39,21 @@ def state_tier(q_lanes: FloatArray, w: int, anchors: FloatArray, radius_sq: floa
 
 @nb.njit(cache=True)
 def edge_suspect_steps(a: FloatArray, b: FloatArray, resolution: float, first_only: bool, out: IntArray,
-                       out_tier: IntArray, queue: IntArray, world: LaneWorld, anchors: FloatArray, radius_sq: float,
-                       tier_clearance: FloatArray) -> tuple[int, int]:  # pragma: no cover
-    """(count of suspects written to `out`, steps), or (-1, steps) when `out`, `out_tier` and
-    `queue` have fewer than 2 * steps + 2 rows. See `SphereBroadPhase.edge_suspects`.
+                       queue: IntArray, world: LaneWorld, anchors: FloatArray,
+                       radius_sq: float) -> tuple[int, int]:  # pragma: no cover
+    """(count of suspects written to `out`, steps), or (-1, steps) when `out` and `queue` have
+    fewer than 2 * steps + 2 rows. See `SphereBroadPhase.edge_suspects`.
 
-    With anchors (K, dof), K > 0, a state of tier t keeps tier_clearance[t] from the voxels and
-    one of tier -1 the last entry (tier_clearance has tiers + 1 entries), and `out_tier` gets each
-    suspect's tier; without, every state keeps world.grid_clearance and `out_tier` gets -1."""
+    A suspect's row of `out` (M, 2) holds its step and its tier. With anchors (K, dof), K > 0,
+    a state of tier t keeps world.tier_clearance[t] from the voxels and one of tier -1 the last
+    entry (tier_clearance has tiers + 1 entries); without, every state keeps
+    world.grid_clearance and its tier reads -1."""
     dof = a.shape[0]
     longest = 0.0
     for j in range(dof):
         longest = max(longest, abs(b[j] - a[j]))
     steps = max(1, int(math.ceil(longest / resolution - 1e-9)))
-    if out.shape[0] < 2 * steps + 2 or out_tier.shape[0] < 2 * steps + 2 or queue.shape[0] < 2 * steps + 2:
+    if out.shape[0] < 2 * steps + 2 or queue.shape[0] < 2 * steps + 2:
         return -1, steps
     # cos and sin of every state's joints by a rotation per step (a sine and a cosine per joint
     # and state cost a third of the kinematics), taken afresh every 16 steps against drift.
@@ -91,8 +92,7 @@ def edge_suspect_steps(a: FloatArray, b: FloatArray, resolution: float, first_on
     order[n_order] = 0
     n_order += 1
     cos_lanes, sin_lanes, q_lanes, flags = world.cos_lanes, world.sin_lanes, world.q_lanes, world.flags
-    lane_clearance = world.lane_clearance
-    lane_tier = np.full(LANES, -1, dtype=np.int64)
+    lane_clearance, lane_tier, tier_clearance = world.lane_clearance, world.lane_tier, world.tier_clearance
     tiers = tier_clearance.shape[0] - 1
     anchored = anchors.shape[0] > 0
     count = 0
@@ -110,12 +110,13 @@ def edge_suspect_steps(a: FloatArray, b: FloatArray, resolution: float, first_on
                 lane_tier[w] = state_tier(q_lanes, w, anchors, radius_sq, tiers)
                 lane_clearance[w] = tier_clearance[lane_tier[w]] if lane_tier[w] >= 0 else tier_clearance[tiers]
             else:
+                lane_tier[w] = -1
                 lane_clearance[w] = world.grid_clearance
         lanes_suspect(lanes, world, first_only)
         for w in range(n):
             if flags[w]:
-                out[count] = order[first + w]
-                out_tier[count] = lane_tier[w]
+                out[count, 0] = order[first + w]
+                out[count, 1] = lane_tier[w]
                 count += 1
                 if first_only:
                     return count, steps

@@ -63,11 +63,11 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "obj_kind", "obj_rotation", "obj_translation", "obj_param", "obj_bound",
     # occupied voxels: distance field, the occupied cells (maybe on a finer grid) and the clearance kept from them
     "has_grid", "grid", "grid_origin", "grid_voxel", "grid_box", "occupied", "fine", "fine_origin", "fine_voxel",
-    "fine_slot", "fine_box", "grid_column", "grid_clearance",
+    "fine_slot", "fine_box", "grid_column", "grid_clearance", "tier_clearance",
     # attached spheres
     "att_center_joint", "att_radius", "att_radius_world", "att_joint", "att_skip",
     # scratch: lane inputs and outputs, frames, placed spheres
-    "cos_lanes", "sin_lanes", "q_lanes", "lane_clearance", "flags", "frames", "sphere_lanes", "bound_lanes", "placed", "near",
+    "cos_lanes", "sin_lanes", "q_lanes", "lane_clearance", "lane_tier", "flags", "frames", "sphere_lanes", "bound_lanes", "placed", "near",
     "distance", "att_lanes", "pair_near",
 )
 """What the lane kernels read, as one object: a call from Python unboxes one reference (~0.6 us)

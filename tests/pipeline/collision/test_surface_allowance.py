@@ -142,6 +142,7 @@ def test_each_state_of_an_edge_keeps_the_clearance_of_its_own_tier(panda: RobotM
             free_edges += free
             blocked_edges += not free
     assert free_edges and blocked_edges and fewer
+    assert world.tier_anchors == (None, 0.0)  # the block ended: every state keeps the whole clearance
 
 
 def _strictness(tier: int) -> int:
