@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 
 import numba as nb
-import numpy as np
 
+from robonav.pipeline.collision.spheres.grid_layers import NO_BOXES, NO_SLOTS
 from robonav.pipeline.types import BoolArray, FloatArray, IntArray
 
 BOX, SPHERE, CYLINDER, CAPSULE = 0, 1, 2, 3
@@ -183,8 +183,4 @@ def touches_voxels(x: float, y: float, z: float, radius: float, occupied: BoolAr
     says a sphere may touch, keeps spheres from flagging states FCL clears: of 1085 random
     Panda states beside a slab of 2 cm voxels (self-collision aside), 39 were flagged but
     free with the field alone, 21 with this step."""
-    return touches_cells(x, y, z, radius, occupied, origin, voxel, occupied, origin, voxel, _NO_SLOTS, _NO_BOXES, column)
-
-
-_NO_SLOTS = np.full((1, 1, 1), -1, dtype=np.int32)
-_NO_BOXES = np.zeros((0, 6), dtype=np.int64)
+    return touches_cells(x, y, z, radius, occupied, origin, voxel, occupied, origin, voxel, NO_SLOTS, NO_BOXES, column)
