@@ -24,7 +24,6 @@ unpadded spheres, as `CollisionWorld` does.
 from __future__ import annotations
 
 import math
-import weakref
 from collections.abc import Sequence
 
 import numpy as np
@@ -43,13 +42,11 @@ from robonav.pipeline.collision.spheres.grid_layers import (
 from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE
 from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld, state_suspect_lanes
 from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, suspect_pairs_of_state
-from robonav.pipeline.collision.spheres.piece_gaps import raise_by_piece_gaps
-from robonav.pipeline.collision.spheres.self_pair_tables import SelfPairTables, build_self_pair_tables
+from robonav.pipeline.collision.spheres.piece_gaps import cached_pair_tables
+from robonav.pipeline.collision.spheres.self_pair_tables import no_pair_tables
 from robonav.pipeline.collision.spheres.separating_planes import (
     SeparatingPlanes,
     cached_separating_planes,
-    joint_frame_pieces,
-    shape_key,
 )
 from robonav.pipeline.collision.spheres.sphere_model import (
     RobotSphereModel,
@@ -57,7 +54,6 @@ from robonav.pipeline.collision.spheres.sphere_model import (
     robot_sphere_model,
     world_radii,
 )
-from robonav.pipeline.collision.spheres.table_store import dataclass_from_arrays, dataclass_to_arrays, stored, table_key
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
@@ -137,9 +133,9 @@ class SphereBroadPhase:
         self._centers_joint = _to_joint_frame(self._kin, self._sphere_link, self._centers_link)
         self._bound_center_joint = _to_joint_frame(self._kin, np.arange(n_links), bound_center)
         self._kin_lane_args = self._kin.lane_arrays()
-        self._pair_tables = (_cached_pair_tables(robot, self._kin, self._centers_joint, self._radii_self,
-                                                 self._link_start, self._self_pairs)
-                             if self_pair_tables else _no_pair_tables(self._self_pairs.shape[0]))
+        self._pair_tables = (cached_pair_tables(robot, self._kin, self._centers_joint, self._radii_self,
+                                                self._link_start, self._self_pairs, CONTACT_EPS_M)
+                             if self_pair_tables else no_pair_tables(self._self_pairs.shape[0]))
         self._planes = (cached_separating_planes(robot, self._kin, self._centers_link, self._radii_self, self._link_start,
                                                  self._self_pairs)
                         if separating_planes else SeparatingPlanes.none(self._self_pairs.shape[0], n_links))
@@ -455,34 +451,6 @@ class SphereBroadPhase:
 
 _NO_STEPS = np.zeros(0, dtype=np.int64)
 _NO_STEPS.flags.writeable = False
-
-
-_pair_tables_of: weakref.WeakKeyDictionary[RobotModel, dict[str, SelfPairTables]] = weakref.WeakKeyDictionary()
-
-
-def _cached_pair_tables(robot: RobotModel, kin: LinkKinematics, centers_joint: FloatArray, radii_m: FloatArray,
-                        link_start: np.ndarray, self_pairs: np.ndarray) -> SelfPairTables:
-    """`build_self_pair_tables` raised by the pieces' distances (`piece_gaps`), once per robot,
-    spheres and pair list (~2 s for the Panda, and every planning world of a robot has the same),
-    kept in the installed `TableStore` too."""
-    shapes = [[shape_key(s) for s in robot.link_collision_shapes[link]] for link in robot.collision_link_names]
-    key = table_key("pair-tables", kin, robot.lower_limits_rad, robot.upper_limits_rad, centers_joint, radii_m,
-                    link_start, self_pairs, shapes)
-    per_robot = _pair_tables_of.setdefault(robot, {})
-    if key not in per_robot:
-        def build() -> SelfPairTables:
-            tables = build_self_pair_tables(kin, robot.lower_limits_rad, robot.upper_limits_rad, centers_joint, radii_m,
-                                            link_start, self_pairs)
-            return raise_by_piece_gaps(tables, kin, self_pairs, joint_frame_pieces(robot, kin), CONTACT_EPS_M)
-
-        per_robot[key] = stored(key, build, dataclass_to_arrays, dataclass_from_arrays(SelfPairTables))
-    return per_robot[key]
-
-
-def _no_pair_tables(n_pairs: int) -> SelfPairTables:
-    return SelfPairTables(np.full(n_pairs, -1, dtype=np.int64), np.full((n_pairs, 2), -1, dtype=np.int64),
-                          np.zeros((n_pairs, 2)), np.ones((n_pairs, 2)), np.ones((n_pairs, 2), dtype=np.int64),
-                          np.zeros(0))
 
 
 def _to_joint_frame(kin: LinkKinematics, link_index: np.ndarray, points_link: FloatArray) -> FloatArray:

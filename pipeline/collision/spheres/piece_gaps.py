@@ -14,11 +14,14 @@ as it would be when its planes separate it, one table lookup instead of the plan
 
 A pair of three joints keeps its sphere bound alone: the swept third joint would need the
 pieces' swept volumes.
+
+The raised tables are built once per robot, spheres and pair list (`cached_pair_tables`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import weakref
 from collections.abc import Sequence
 
 import fcl
@@ -29,10 +32,14 @@ from robonav.pipeline.collision.fcl_shapes import convex_shape
 from robonav.pipeline.collision.spheres.self_pair_tables import (
     ROUNDING_GUARD_M,
     SelfPairTables,
+    build_self_pair_tables,
     chain_joints,
     points_in_upper_frame,
 )
+from robonav.pipeline.collision.spheres.separating_planes import joint_frame_pieces, shape_key
+from robonav.pipeline.collision.spheres.table_store import dataclass_from_arrays, dataclass_to_arrays, stored, table_key
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
+from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.types import FloatArray, IntArray
 
 MAX_PIECE_CHAIN_JOINTS = 2
@@ -170,3 +177,25 @@ class _PairSlack:
                     break
             out[t] = found
         return out
+
+
+_pair_tables_of: weakref.WeakKeyDictionary[RobotModel, dict[str, SelfPairTables]] = weakref.WeakKeyDictionary()
+
+
+def cached_pair_tables(robot: RobotModel, kin: LinkKinematics, centers_joint: FloatArray, radii_m: FloatArray,
+                       link_start: IntArray, self_pairs: IntArray, contact_m: float) -> SelfPairTables:
+    """`build_self_pair_tables` raised by the pieces' distances (`raise_by_piece_gaps`), once per
+    robot, spheres and pair list (~2 s for the Panda, and every planning world of a robot has the
+    same), kept in the installed `TableStore` too."""
+    shapes = [[shape_key(s) for s in robot.link_collision_shapes[link]] for link in robot.collision_link_names]
+    key = table_key("pair-tables", kin, robot.lower_limits_rad, robot.upper_limits_rad, centers_joint, radii_m,
+                    link_start, self_pairs, shapes)
+    per_robot = _pair_tables_of.setdefault(robot, {})
+    if key not in per_robot:
+        def build() -> SelfPairTables:
+            tables = build_self_pair_tables(kin, robot.lower_limits_rad, robot.upper_limits_rad, centers_joint, radii_m,
+                                            link_start, self_pairs)
+            return raise_by_piece_gaps(tables, kin, self_pairs, joint_frame_pieces(robot, kin), contact_m)
+
+        per_robot[key] = stored(key, build, dataclass_to_arrays, dataclass_from_arrays(SelfPairTables))
+    return per_robot[key]

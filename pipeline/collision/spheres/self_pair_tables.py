@@ -191,3 +191,10 @@ def _axis_rotations(axis: FloatArray, angles: FloatArray) -> FloatArray:
     k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     s, c = np.sin(angles)[:, None, None], np.cos(angles)[:, None, None]
     return np.eye(3)[None] + s * k[None] + (1.0 - c) * (k @ k)[None]
+
+
+def no_pair_tables(n_pairs: int) -> SelfPairTables:
+    """Tables that prove nothing for any of `n_pairs` pairs (every pair goes to its spheres)."""
+    return SelfPairTables(np.full(n_pairs, -1, dtype=np.int64), np.full((n_pairs, 2), -1, dtype=np.int64),
+                          np.zeros((n_pairs, 2)), np.ones((n_pairs, 2)), np.ones((n_pairs, 2), dtype=np.int64),
+                          np.zeros(0))
