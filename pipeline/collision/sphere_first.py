@@ -61,8 +61,13 @@ class SphereFirstChecks:
         if not self._broad_phase_usable():
             return not self.in_collision(q)
         q = self._robot.validate_q(q)
-        tier = self.clearance_tier(q)
-        return not self._broad_phase.state_suspect(q, tier=tier) or self._suspect_free(q, exact, tier)
+        anchors, radius_sq = self.tier_anchors
+        if anchors is None:
+            return not self._broad_phase.state_suspect(q) or self._suspect_free(q, exact, -1)
+        # The tier and the spheres in one compiled call: as a Python step the tier cost a third
+        # of the check.
+        suspect, tier = self._broad_phase.state_suspect_tiered(q, anchors, radius_sq)
+        return not suspect or self._suspect_free(q, exact, tier)
 
     def _suspect_free(self: CollisionWorld, q: FloatArray, exact: StateValidFn, tier: int) -> bool:
         """A state the broad phase flagged at its own clearance tier `tier`: free where `exact`

@@ -28,7 +28,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from robonav.pipeline.collision.spheres.edge_lanes import edge_suspect_steps
+from robonav.pipeline.collision.spheres.edge_lanes import edge_suspect_steps, state_suspect_tiered
 from robonav.pipeline.collision.spheres.grid_layers import (
     NO_BOXES,
     NO_SLOTS,
@@ -371,6 +371,14 @@ class SphereBroadPhase:
         `tier` picks the clearance kept from the occupancy (see `set_occupied_voxels`)."""
         return bool(state_suspect_lanes(np.array(q, dtype=np.float64), self._lane_worlds[tier]))
 
+    def state_suspect_tiered(self, q: FloatArray, anchors: FloatArray, anchor_radius_sq: float) -> tuple[bool, int]:
+        """`state_suspect` at the clearance tier of `q` (dof,) by its squared joint-space distance
+        to the nearest of `anchors` (K, dof), as `edge_suspects` tiers an edge's states: (suspect,
+        tier), tier -1 beyond `anchor_radius_sq`."""
+        suspect, tier = state_suspect_tiered(np.array(q, dtype=np.float64), self._lane_worlds[-1], _kernel_anchors(anchors),
+                                             float(anchor_radius_sq))
+        return bool(suspect), int(tier)
+
     def suspect_pairs(self, q: FloatArray, *, tier: int = -1) -> tuple[np.ndarray, np.ndarray, np.ndarray, FloatArray]:
         """The pairs whose spheres are within contact at `q` (dof,): only these can collide in FCL.
 
@@ -426,8 +434,7 @@ class SphereBroadPhase:
         if not resolution_rad > 0 or resolution_rad == math.inf:  # NaN fails the first test
             raise ValueError(f"resolution_rad must be finite and > 0, got {resolution_rad}")
         anchored = anchors is not None and anchors.shape[0] > 0
-        # Writeable and C-ordered always: another array type would compile another specialisation.
-        anchors = np.require(anchors, np.float64, ("C", "W")) if anchored else self._no_anchors
+        anchors = _kernel_anchors(anchors) if anchored else self._no_anchors
         world = self._lane_worlds[-1 if anchored else tier]
         # Plain float and bool: an int would make numba compile another specialisation.
         resolution_rad, first_only = float(resolution_rad), bool(first_only)
@@ -449,6 +456,16 @@ class SphereBroadPhase:
         return found[:, 0], found[:, 1], steps
 
 
+def _kernel_anchors(anchors: FloatArray) -> FloatArray:
+    """`anchors` as the compiled code takes them, writeable and C-ordered float64: another array
+    type would compile another specialisation. Most callers hold such an array already, and the
+    test is a tenth of `np.require`'s (once per state and edge)."""
+    if anchors.flags.carray and anchors.dtype is _FLOAT64:
+        return anchors
+    return np.require(anchors, np.float64, ("C", "W"))
+
+
+_FLOAT64 = np.dtype(np.float64)
 _NO_STEPS = np.zeros(0, dtype=np.int64)
 _NO_STEPS.flags.writeable = False
 

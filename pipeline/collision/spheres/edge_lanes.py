@@ -38,6 +38,21 @@ def state_tier(q_lanes: FloatArray, w: int, anchors: FloatArray, radius_sq: floa
 
 
 @nb.njit(cache=True)
+def state_suspect_tiered(q: FloatArray, world: LaneWorld, anchors: FloatArray,
+                         radius_sq: float) -> tuple[bool, int]:  # pragma: no cover
+    """(whether a sphere at the one state `q` (dof,) is within contact, the state's tier), the
+    clearance kept by its tier as an edge's state keeps it (lane 0 alone)."""
+    cos_lanes, sin_lanes, q_lanes = world.cos_lanes, world.sin_lanes, world.q_lanes
+    for j in range(q.shape[0]):
+        cos_lanes[j, 0], sin_lanes[j, 0], q_lanes[j, 0] = math.cos(q[j]), math.sin(q[j]), q[j]
+    tiers = world.tier_clearance.shape[0] - 1
+    tier = state_tier(q_lanes, 0, anchors, radius_sq, tiers)
+    world.lane_clearance[0] = world.tier_clearance[tier] if tier >= 0 else world.tier_clearance[tiers]
+    lanes_suspect(1, world, True)
+    return world.flags[0], tier
+
+
+@nb.njit(cache=True)
 def edge_suspect_steps(a: FloatArray, b: FloatArray, resolution: float, first_only: bool, out: IntArray,
                        queue: IntArray, world: LaneWorld, anchors: FloatArray,
                        radius_sq: float) -> tuple[int, int]:  # pragma: no cover

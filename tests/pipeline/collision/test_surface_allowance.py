@@ -145,6 +145,34 @@ def test_each_state_of_an_edge_keeps_the_clearance_of_its_own_tier(panda: RobotM
     assert world.tier_anchors == (None, 0.0)  # the block ended: every state keeps the whole clearance
 
 
+def test_a_single_state_keeps_the_clearance_of_its_own_tier(panda: RobotModel) -> None:
+    """One state's broad-phase check works out its tier as an edge's states do: the same tier as
+    `clearance_tier`, the same verdict as the spheres at that tier, and the sphere-first check
+    frees exactly the states the spheres clear."""
+    home = panda.home_position_rad
+    target = panda.frame_pose(home, "panda_grasptarget")[:3, 3]
+    world = _map_world(panda, _wall_points(_hand_front_x(panda, home) + 0.012, target))
+    broad = world._broad_phase  # noqa: SLF001
+    rng = np.random.default_rng(5)
+    states = home + rng.normal(size=(200, panda.dof)) * rng.uniform(0.0, 0.5, size=(200, 1))
+    seen_tiers, verdicts = set(), set()
+    with world.anchored(np.vstack([home, home + 0.3]), 1.0):
+        anchors, radius_sq = world.tier_anchors
+        for q in states:
+            tier = world.clearance_tier(q)
+            suspect = broad.state_suspect(q, tier=tier)
+            assert broad.state_suspect_tiered(q, anchors, radius_sq) == (suspect, tier)
+            assert world.state_free_by_spheres(q, lambda _: False) == (not suspect)
+            seen_tiers.add(tier)
+            verdicts.add(suspect)
+        # A read-only, Fortran-ordered copy of the anchors gives the same answers.
+        odd = np.asfortranarray(anchors)
+        odd.flags.writeable = False
+        assert all(broad.state_suspect_tiered(q, odd, radius_sq) == broad.state_suspect_tiered(q, anchors, radius_sq)
+                   for q in states[:20])
+    assert seen_tiers == {-1, 0, 1, 2, 3} and verdicts == {True, False}
+
+
 def _strictness(tier: int) -> int:
     """Order of tiers by the clearance they keep (-1, far from the anchors, keeps it whole)."""
     return TIERS if tier < 0 else tier
