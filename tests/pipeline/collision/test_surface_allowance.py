@@ -45,11 +45,16 @@ def _map_world(panda: RobotModel, points: np.ndarray, *, broad_phase: bool = Tru
     return world
 
 
+def _wall_ahead_world(panda: RobotModel, q: np.ndarray) -> CollisionWorld:
+    """A map of a wall 1.2 cm beyond the fingertips at `q`: inside the 2 cm inflation, clear of
+    the seen surface."""
+    target = panda.frame_pose(q, "panda_grasptarget")[:3, 3]
+    return _map_world(panda, _wall_points(_hand_front_x(panda, q) + 0.012, target))
+
+
 def test_goal_near_a_surface_is_free_at_the_anchor_and_blocked_away_from_it(panda: RobotModel) -> None:
     home = panda.home_position_rad
-    target = panda.frame_pose(home, "panda_grasptarget")[:3, 3]
-    # A wall 1.2 cm beyond the fingertips: inside the 2 cm inflation, clear of the seen surface.
-    world = _map_world(panda, _wall_points(_hand_front_x(panda, home) + 0.012, target))
+    world = _wall_ahead_world(panda, home)
     assert world.has_surface_allowance and world.map_clearance_m == INFLATION_M
     hits = world.collisions(home)
     assert hits and all(other == OCCUPANCY for _, other in hits)
@@ -118,8 +123,7 @@ def test_each_state_of_an_edge_keeps_the_clearance_of_its_own_tier(panda: RobotM
     of its own tier (the goal at none), not at the strictest tier of its ends; the edge is free
     exactly when each of its states is."""
     home = panda.home_position_rad
-    target = panda.frame_pose(home, "panda_grasptarget")[:3, 3]
-    world = _map_world(panda, _wall_points(_hand_front_x(panda, home) + 0.012, target))
+    world = _wall_ahead_world(panda, home)
     broad = world._broad_phase  # noqa: SLF001
     rng = np.random.default_rng(4)
     free_edges = blocked_edges = fewer = 0
@@ -150,8 +154,7 @@ def test_a_single_state_keeps_the_clearance_of_its_own_tier(panda: RobotModel) -
     `clearance_tier`, the same verdict as the spheres at that tier, and the sphere-first check
     frees exactly the states the spheres clear."""
     home = panda.home_position_rad
-    target = panda.frame_pose(home, "panda_grasptarget")[:3, 3]
-    world = _map_world(panda, _wall_points(_hand_front_x(panda, home) + 0.012, target))
+    world = _wall_ahead_world(panda, home)
     broad = world._broad_phase  # noqa: SLF001
     rng = np.random.default_rng(5)
     states = home + rng.normal(size=(200, panda.dof)) * rng.uniform(0.0, 0.5, size=(200, 1))
