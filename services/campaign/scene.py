@@ -391,8 +391,9 @@ class SceneRunner:
             "map_frame_after_rest_s": None if occupancy is None else round(occupancy.stamp - self._intruder_rest_at, 3),
             "box_from_rest_m": None if from_rest_m is None else round(from_rest_m, 4),
             "box_pixels_seen_from_start": self._placer.pixels_seen(box, path[0])})
-        log.warning("scene %d: a plan passes through the resting box (start %.3f m from it, %d map voxels inside it)",
-                    record.scene, start_clearance_m, voxels)
+        log.warning("scene %d: a plan passes through the resting box (start %.3f m from it, %d map voxels inside it, "
+                    "the box %s m from its resting place)", record.scene, start_clearance_m, voxels,
+                    "?" if from_rest_m is None else f"{from_rest_m:.3f}")
 
     def _plan_with_room(self, goal: np.ndarray, plan: PlanResponse) -> tuple[PlanResponse, Intruder | None]:
         """`plan`, or another plan to `goal` (the planner is randomized) that leaves room for an

@@ -69,7 +69,9 @@ def test_the_summary_counts_feasible_goals_contacts_and_clearance() -> None:
         {"index": 0, "scene": "a", "moving": False, "contacts": 0, "min_distance_m": 0.04, "min_distance_pair": "x|y",
          "goals": [goal(True, True), goal(False, False)]},
         {"index": 1, "scene": "b", "moving": True, "contacts": 1, "min_distance_m": -0.001, "min_distance_pair": "hand|intruder",
-         "goals": [goal(False, True, moving=True) | {"plans_through_box": [{"start_clearance_m": 0.02}]}]},
+         "goals": [goal(False, True, moving=True) | {"plans_through_box": [
+             {"start_clearance_m": 0.02}, {"start_clearance_m": 0.1, "box_from_rest_m": 0.004},
+             {"start_clearance_m": 0.2, "box_from_rest_m": 0.4}]}]},
     ]
     args = argparse.Namespace(seed=1, source="clutter", no_noise=False, no_guard=False, moving_speed=0.5)
     sim_stats = SimStatsResponse(wall_time_s=60.0, sim_time_s=59.0, real_time_factor=0.98, steps=59000,
@@ -83,7 +85,9 @@ def test_the_summary_counts_feasible_goals_contacts_and_clearance() -> None:
     assert (summary["contacts"], summary["moving_contacts"], summary["scenes_below_padding"]) == (1, 1, 1)
     assert summary["min_clearance_m"] == -0.001 and summary["closest_pairs"] == {"hand|intruder": 1}
     assert summary["planning_ms"]["p50"] == 20.0 and summary["replans"] == 3
-    assert (summary["intruders"], summary["moving_speed_factor"], summary["plans_through_box"]) == (1, 0.5, 1)
+    assert (summary["intruders"], summary["moving_speed_factor"], summary["plans_through_box"]) == (1, 0.5, 2)
+    # A box 0.4 m from where it was sent had not slid there: the path crossed its place, not the box.
+    assert summary["plans_through_box_not_arrived"] == 1 and "2 (1)" in table(summary)
     assert "reached (of feasible)" in table(summary) and "2 (1 / 1)" in table(summary)
     # Why motions stopped on their own: the executor's watchdog, the arm's refusals and brakes.
     assert summary["executor_faults"] == {"TRACKING_ERROR": 3}
