@@ -40,7 +40,7 @@ from robonav.pipeline.collision.spheres.grid_layers import (
     voxel_layer,
 )
 from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CONTACT_EPS_M, CYLINDER, SPHERE
-from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld, state_suspect_lanes
+from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld
 from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, suspect_pairs_of_state
 from robonav.pipeline.collision.spheres.piece_gaps import cached_pair_tables
 from robonav.pipeline.collision.spheres.self_pair_tables import no_pair_tables
@@ -369,7 +369,7 @@ class SphereBroadPhase:
     def state_suspect(self, q: FloatArray, *, tier: int = -1) -> bool:
         """True if any sphere pair at `q` (dof,) is within contact (ask FCL); False means collision-free.
         `tier` picks the clearance kept from the occupancy (see `set_occupied_voxels`)."""
-        return bool(state_suspect_lanes(np.array(q, dtype=np.float64), self._lane_worlds[tier]))
+        return bool(state_suspect_tiered(np.array(q, dtype=np.float64), self._lane_worlds[tier], self._no_anchors, 0.0)[0])
 
     def state_suspect_tiered(self, q: FloatArray, anchors: FloatArray, anchor_radius_sq: float) -> tuple[bool, int]:
         """`state_suspect` at the clearance tier of `q` (dof,) by its squared joint-space distance

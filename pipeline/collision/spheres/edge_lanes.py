@@ -40,14 +40,19 @@ def state_tier(q_lanes: FloatArray, w: int, anchors: FloatArray, radius_sq: floa
 @nb.njit(cache=True)
 def state_suspect_tiered(q: FloatArray, world: LaneWorld, anchors: FloatArray,
                          radius_sq: float) -> tuple[bool, int]:  # pragma: no cover
-    """(whether a sphere at the one state `q` (dof,) is within contact, the state's tier), the
-    clearance kept by its tier as an edge's state keeps it (lane 0 alone)."""
+    """(whether a sphere at the one state `q` (dof,) is within contact, the state's tier), lane 0
+    alone. With anchors (K, dof), K > 0, the state keeps its tier's clearance as an edge's state
+    does (`edge_suspect_steps`); without, world.grid_clearance, and its tier reads -1."""
     cos_lanes, sin_lanes, q_lanes = world.cos_lanes, world.sin_lanes, world.q_lanes
     for j in range(q.shape[0]):
         cos_lanes[j, 0], sin_lanes[j, 0], q_lanes[j, 0] = math.cos(q[j]), math.sin(q[j]), q[j]
-    tiers = world.tier_clearance.shape[0] - 1
-    tier = state_tier(q_lanes, 0, anchors, radius_sq, tiers)
-    world.lane_clearance[0] = world.tier_clearance[tier] if tier >= 0 else world.tier_clearance[tiers]
+    tier = -1
+    if anchors.shape[0] > 0:
+        tiers = world.tier_clearance.shape[0] - 1
+        tier = state_tier(q_lanes, 0, anchors, radius_sq, tiers)
+        world.lane_clearance[0] = world.tier_clearance[tier] if tier >= 0 else world.tier_clearance[tiers]
+    else:
+        world.lane_clearance[0] = world.grid_clearance
     lanes_suspect(1, world, True)
     return world.flags[0], tier
 

@@ -420,14 +420,3 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
                         break
                 if flags[w]:
                     break
-
-
-@nb.njit(cache=True)
-def state_suspect_lanes(q: FloatArray, world: LaneWorld) -> bool:  # pragma: no cover (compiled)
-    """Whether any sphere at the one state `q` (dof,) is within contact (lane 0 alone)."""
-    cos_lanes, sin_lanes, q_lanes = world.cos_lanes, world.sin_lanes, world.q_lanes
-    for j in range(q.shape[0]):
-        cos_lanes[j, 0], sin_lanes[j, 0], q_lanes[j, 0] = math.cos(q[j]), math.sin(q[j]), q[j]
-    world.lane_clearance[0] = world.grid_clearance
-    lanes_suspect(1, world, True)
-    return world.flags[0]
