@@ -1,4 +1,5 @@
-"""One planning query against a collision world: goals, checks, search, simplification, metrics.
+"""One planning query against a collision world: its goal set (`goal_set.py`), checks, search,
+simplification, metrics.
 
 This is the planner service's core, free of Zenoh: a joint-space problem (joint goals, a goal
 set or a Cartesian pose goal) in, a path with its metrics or a status that says why not out.
@@ -20,7 +21,7 @@ from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.planning.baselines.lattice import plan_lattice
 from robonav.pipeline.planning.baselines.potential_field import PotentialFieldConfig, plan_potential_field
 from robonav.pipeline.planning.config import PlannerConfig
-from robonav.pipeline.planning.ik import IkStatus, solve_ik
+from robonav.pipeline.planning.goal_set import goal_set, state_problem
 from robonav.pipeline.planning.metrics import interpolate_path, max_joint_step_rad, path_length_rad
 from robonav.pipeline.planning.ompl_planners import PLANNER_CLASSES, JointSpaceProblem, OmplSpace, race
 from robonav.pipeline.planning.problem import PlanOutcome as PlanOutcome
@@ -107,7 +108,7 @@ class MotionPlanner:
         turning = self.robot.continuous_mask
         goals = None if problem.goals_rad is None else np.asarray(problem.goals_rad, dtype=np.float64)
         if goals is None or not turning.any() or goals.ndim not in (1, 2) or goals.shape[-1] != self.robot.dof:
-            return problem  # nothing wraps, or a malformed goal `_goal_set` refuses by name
+            return problem  # nothing wraps, or a malformed goal `goal_set` refuses by name
         start = self.robot.validate_q(problem.start_rad, "start")
         return dataclasses.replace(problem, goals_rad=self.robot.nearest_turn_rad(goals, start))
 
@@ -124,7 +125,7 @@ class MotionPlanner:
         is_valid, motion_valid = workspace_validity(self.robot, problem.workspace_min_m, problem.workspace_max_m,
                                                     self._is_valid, self._motion_valid, self.config.edge_resolution_rad)
         real_start: FloatArray | None = None
-        start_problem = self._state_problem(start, is_valid, "start", PlanStatus.START_INVALID)
+        start_problem = state_problem(self.robot, self.world, start, is_valid, "start", PlanStatus.START_INVALID)
         if start_problem is not None:
             escape = None if start_problem.status is not PlanStatus.START_INVALID else escape_start(
                 self.world, start, is_valid, rng, radius_rad=self.config.start_escape_rad,
@@ -133,7 +134,7 @@ class MotionPlanner:
                 return start_problem
             real_start, start = start, escape
 
-        goals = self._goal_set(problem, start, is_valid, rng)
+        goals = goal_set(self.robot, self.world, self.config, problem, start, is_valid, rng)
         if isinstance(goals, PlanOutcome):
             return goals
         if self.world.has_surface_allowance:
@@ -183,96 +184,6 @@ class MotionPlanner:
             outcome, path=path, path_length_rad=path_length_rad(path), max_joint_step_rad=max_joint_step_rad(path),
             min_clearance_m=clearance, detail=f"{outcome.detail}; left the start's padding ({start_problem.detail})",
             start_escape=escape)
-
-    def _goal_set(self, problem: PlanProblem, start: FloatArray, is_valid: StateValidFn,
-                  rng: np.random.Generator) -> FloatArray | PlanOutcome | None:
-        """The (G, n) goal set, or a PlanOutcome saying why there is none."""
-        if (problem.goals_rad is None) == (problem.pose_goal is None):
-            raise ValueError("give exactly one of goals_rad and pose_goal")
-        if problem.pose_goal is not None:
-            return self._pose_goal_set(problem, start, is_valid, rng)
-        goals = np.asarray(problem.goals_rad, dtype=np.float64)
-        goals = goals[None, :] if goals.ndim == 1 else goals
-        if goals.ndim != 2 or goals.shape[0] == 0:
-            raise ValueError(f"goals_rad must have shape ({self.robot.dof},) or (G >= 1, {self.robot.dof})")
-        goals = np.array([self.robot.validate_q(g, "goal" if len(goals) == 1 else f"goals[{k}]")
-                          for k, g in enumerate(goals)])
-        tolerance = problem.goal_tolerance_rad
-        if not (math.isfinite(tolerance) and tolerance >= 0):
-            raise ValueError(f"goal_tolerance_rad must be finite and >= 0, got {tolerance}")
-        kept: list[FloatArray] = []
-        first_problem: PlanOutcome | None = None
-        for goal in goals:
-            problem_here = self._state_problem(goal, is_valid, "goal", PlanStatus.GOAL_INVALID)
-            if problem_here is None:
-                kept.append(goal)
-                continue
-            first_problem = first_problem or problem_here
-            if tolerance > 0:
-                kept.extend(self._goals_near(goal, tolerance, is_valid, rng))
-        if kept:
-            return np.array(kept)
-        return first_problem
-
-    def _state_problem(self, q: FloatArray, is_valid: StateValidFn, which: str,
-                       invalid: PlanStatus) -> PlanOutcome | None:
-        """Why the start or a goal `q` cannot be planned from/to (limits, collisions, workspace), or None."""
-        violations = self.robot.check_joint_limits(q)
-        if violations:
-            return PlanOutcome(PlanStatus.OUT_OF_BOUNDS, f"{which} is outside the joint limits: {'; '.join(violations)}",
-                               details={"which": which, "violations": violations})
-        pairs = self.world.collisions(q)
-        if pairs:
-            named = [f"{a}|{b}" for a, b in pairs]
-            return PlanOutcome(invalid, f"{which} is in collision: {', '.join(named)}",
-                               details={"pairs": named, "which": which, "positions": q.tolist()})
-        if not is_valid(q):
-            return PlanOutcome(invalid, f"{which}: the end-effector is outside the workspace bounds",
-                               details={"which": which, "workspace": True})
-        return None
-
-    def _goals_near(self, goal: FloatArray, tolerance: float, is_valid: StateValidFn, rng: np.random.Generator,
-                    samples: int = 64) -> list[FloatArray]:
-        low = np.maximum(goal - tolerance, self.robot.lower_limits_rad)
-        high = np.minimum(goal + tolerance, self.robot.upper_limits_rad)
-        candidates = rng.uniform(low, high, size=(samples, goal.shape[0]))
-        valid = [q for q in candidates if is_valid(q)]
-        valid.sort(key=lambda q: float(np.max(np.abs(q - goal))))
-        return valid[:4]
-
-    def _pose_goal_set(self, problem: PlanProblem, start: FloatArray, is_valid: StateValidFn,
-                       rng: np.random.Generator) -> FloatArray | PlanOutcome:
-        pose = problem.pose_goal
-        assert pose is not None
-        result = solve_ik(
-            self.robot, pose.world_from_target, pose.link, rng=rng,
-            position_tolerance_m=pose.position_tolerance_m, orientation_tolerance_rad=pose.orientation_tolerance_rad,
-            is_valid=self._goal_validity(is_valid), seed_q=start, max_restarts=self.config.ik_restarts,
-            max_solutions=self.config.ik_solutions,
-        )
-        details = {"position_error_m": result.best_position_error_m,
-                   "orientation_error_rad": result.best_orientation_error_rad, "attempts": result.attempts}
-        if result.status is IkStatus.UNREACHABLE:
-            return PlanOutcome(PlanStatus.GOAL_UNREACHABLE, f"no IK solution for {pose.link}: {result.detail}",
-                               details=details)
-        if result.status is IkStatus.GOAL_IN_COLLISION:
-            details |= {"rejected": result.rejected_invalid, "which": "goal"}
-            if len(result.rejected):  # where the nearest rejected solution collides, for a viewer to show
-                q = result.rejected[0]
-                details |= {"positions": q.tolist(), "pairs": [f"{a}|{b}" for a, b in self.world.collisions(q)]}
-            return PlanOutcome(PlanStatus.GOAL_INVALID,
-                               f"every IK solution for {pose.link} is in collision: {result.detail}", details=details)
-        return self.robot.nearest_turn_rad(result.solutions, start)
-
-    def _goal_validity(self, is_valid: StateValidFn) -> StateValidFn:
-        """`is_valid` for a goal candidate: it is an anchor of its own check (see `plan`)."""
-        if not self.world.has_surface_allowance:
-            return is_valid
-
-        def valid(q: FloatArray) -> bool:
-            with self.world.anchored(np.vstack([self.world.anchors, q]), self.config.surface_allowance_rad):
-                return is_valid(q)
-        return valid
 
     def _near_anchor(self, q: FloatArray) -> bool:
         # Asked at the first suspect state of nearly every blocked edge: a loop of dot products
