@@ -23,12 +23,13 @@ from robonav.pipeline.planning.baselines.potential_field import PotentialFieldCo
 from robonav.pipeline.planning.config import PlannerConfig
 from robonav.pipeline.planning.goal_set import goal_set, state_problem
 from robonav.pipeline.planning.metrics import interpolate_path, max_joint_step_rad, path_length_rad
-from robonav.pipeline.planning.ompl_planners import PLANNER_CLASSES, JointSpaceProblem, OmplSpace, race
+from robonav.pipeline.planning.ompl_planners import PLANNER_CLASSES, JointSpaceProblem, OmplSpace
 from robonav.pipeline.planning.problem import PlanOutcome as PlanOutcome
 from robonav.pipeline.planning.problem import PlanProblem as PlanProblem
 from robonav.pipeline.planning.problem import PoseGoal as PoseGoal
 from robonav.pipeline.planning.problem import SearchMode as SearchMode
 from robonav.pipeline.planning.problem import StartEscape as StartEscape
+from robonav.pipeline.planning.race import race
 from robonav.pipeline.planning.result import PlanResult, PlanStatus
 from robonav.pipeline.planning.shortcut import shortcut_path
 from robonav.pipeline.planning.start_escape import escape_start

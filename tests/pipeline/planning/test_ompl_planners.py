@@ -10,7 +10,7 @@ import pytest
 
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.planning.metrics import path_length_rad
-from robonav.pipeline.planning.ompl_planners import PLANNER_CLASSES, JointSpaceProblem, OmplSpace, plan_ompl, race, seed_ompl_once
+from robonav.pipeline.planning.ompl_planners import PLANNER_CLASSES, JointSpaceProblem, OmplSpace, plan_ompl, seed_ompl_once
 from robonav.pipeline.planning.result import PlanStatus
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
@@ -169,14 +169,6 @@ def test_goal_set_ends_at_one_of_the_goals_and_drops_invalid_ones(make_point_rob
     assert result.success
     assert any(np.array_equal(result.path[-1], g) for g in goals[1:])
     assert _plan(robot, goal=goals[:1]).status is PlanStatus.GOAL_INVALID
-
-
-def test_race_returns_a_winner_and_stops_the_others(make_point_robot) -> None:
-    space = _space(make_point_robot([WALL]))
-    winner, result = race(space, ["rrtconnect", "prmstar"], START, GOAL[None], time_limit_s=5.0)
-    assert result.success and winner in ("rrtconnect", "prmstar")
-    # PRM* alone would use the whole 5 s; the win stopped it long before.
-    assert result.planning_time_s < 2.0
 
 
 class _Owner:
