@@ -58,6 +58,8 @@ log = logging.getLogger("robonav.campaign")
 SERVICE_START_TIMEOUT_S = 90.0
 EXTRA_CAMERAS_NAME = "campaign_cameras.yaml"
 MAX_FAILED_SCENES_IN_A_ROW = 3
+BOX_AT_REST_M = 0.01
+"""A slid box this close to its resting place had arrived when a plan was checked against it."""
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -180,6 +182,7 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
     moving = [s for s in scenes if s["moving"]]
     distances = [s["min_distance_m"] for s in scenes if s["min_distance_m"] is not None]
     padding = cfg.robot.padding_m
+    box_arrived = [_box_arrived(p) for g in goals for p in g.get("plans_through_box", [])]
     summary: dict[str, Any] = {
         "robot": cfg.robot.name, "joint_names": list(cfg.robot.joint_names),
         "scenes": len(scenes), "seed": args.seed, "source": args.source, "noise": not args.no_noise,
@@ -197,8 +200,7 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
         "moving_goals_reached": sum(g["reached"] for g in goals if g["moving"]),
         "moving_speed_factor": args.moving_speed,
         "start_escapes": sum(g.get("start_escapes", 0) for g in goals),
-        "plans_through_box": sum(_box_arrived(p) for g in goals for p in g.get("plans_through_box", [])),
-        "plans_through_box_not_arrived": sum(not _box_arrived(p) for g in goals for p in g.get("plans_through_box", [])),
+        "plans_through_box": sum(box_arrived), "plans_through_box_not_arrived": len(box_arrived) - sum(box_arrived),
         "limit_violations": monitors.limit_violations, "setpoints_checked": monitors.setpoints,
         "limit_violation_examples": monitors.violation_examples,
         "min_clearance_m": round(min(distances), 4) if distances else None,
@@ -236,10 +238,6 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
                           "setpoint_timeouts": sim_stats.setpoint_timeouts, "brakes": sim_stats.brakes}
     summary["per_scene"] = scenes
     return summary
-
-
-BOX_AT_REST_M = 0.01
-"""A slid box this close to its resting place had arrived when a plan was checked against it."""
 
 
 def _box_arrived(through: dict[str, Any]) -> bool:
