@@ -68,15 +68,7 @@ def map_accuracy(occupied_centers_m: npt.ArrayLike, resolution_m: float, *, visi
     covered = np.array([tuple(k) in occupied_set for k in surface_keys.tolist()], dtype=bool)
     near = np.array([any(tuple(k + n) in occupied_set for n in _NEIGHBOURS) for k in surface_keys], dtype=bool)
 
-    # A voxel touches an obstacle grown by one voxel when its center lies within half a voxel
-    # diagonal plus one voxel of it: inside, or that close to its (densely sampled) surface.
-    reach = resolution_m * (0.5 * np.sqrt(3.0) + 1.0) + sample_spacing_m
-    truth = _inside_any(centers, objects)
-    if objects and not truth.all():
-        samples = sample_object_surfaces(objects, spacing_m=sample_spacing_m, rng=np.random.default_rng(0))
-        distance, _ = cKDTree(samples).query(centers[~truth], distance_upper_bound=reach)
-        truth[~truth] = distance <= reach
-    spurious = int(np.count_nonzero(~truth))
+    spurious = int(np.count_nonzero(spurious_voxels(centers, resolution_m, objects, sample_spacing_m)))
     on_robot = 0
     if centers.shape[0]:
         on_robot = int(np.count_nonzero(~SelfFilter(robot_hulls, 0.0).outside_mask(centers, world_from_link)))
@@ -88,6 +80,45 @@ def map_accuracy(occupied_centers_m: npt.ArrayLike, resolution_m: float, *, visi
         occupied=int(centers.shape[0]), spurious=spurious,
         spurious_fraction=spurious / centers.shape[0] if centers.shape[0] else 0.0,
         on_robot=on_robot)
+
+
+def noise_reach_m(resolution_m: float) -> float:
+    """How far from an obstacle's surface a voxel center explained by it may lie [m]: a voxel
+    touches the obstacle grown by one voxel when its center is within half a voxel diagonal plus
+    one voxel of it."""
+    return resolution_m * (0.5 * np.sqrt(3.0) + 1.0)
+
+
+def spurious_voxels(centers_m: npt.ArrayLike, resolution_m: float, objects: Sequence[SceneObject],
+                    sample_spacing_m: float = 0.004) -> npt.NDArray[np.bool_]:
+    """Which voxels (N, 3 centers [m]) have a cube that touches no true obstacle grown by one
+    voxel: what no object explains, even allowing a voxel of noise (`MapAccuracy.spurious`)."""
+    centers = np.asarray(centers_m, dtype=np.float64).reshape(-1, 3)
+    reach = noise_reach_m(resolution_m) + sample_spacing_m
+    truth = _inside_any(centers, objects)
+    if objects and not truth.all():
+        samples = sample_object_surfaces(objects, spacing_m=sample_spacing_m, rng=np.random.default_rng(0))
+        distance, _ = cKDTree(samples).query(centers[~truth], distance_upper_bound=reach)
+        truth[~truth] = distance <= reach
+    return ~truth
+
+
+def below_objects(points_m: npt.ArrayLike, objects: Sequence[SceneObject], margin_m: float = 0.0) -> npt.NDArray[np.bool_]:
+    """Which points (N, 3) [m] lie straight below a true object: inside the footprint of its
+    world-frame bounding box grown by `margin_m` (a map's surface voxels reach past the
+    surface), lower than its bottom. Perception fills such columns when `fill_below_surfaces`
+    is on (it assumes what it sees rests on solid matter), so a voxel there that no object
+    explains is that assumption, not noise."""
+    points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    below = np.zeros(points.shape[0], dtype=bool)
+    for obj in objects:
+        pose = obj.world_from_object
+        center, half = obj.local_bounds_m
+        corners = (center + half * np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)])) \
+            @ pose[:3, :3].T + pose[:3, 3]
+        low, high = corners.min(axis=0) - margin_m, corners.max(axis=0) + margin_m
+        below |= np.all((points[:, :2] >= low[:2]) & (points[:, :2] <= high[:2]), axis=1) & (points[:, 2] < low[2])
+    return below
 
 
 def _keys(points_m: FloatArray, resolution_m: float) -> npt.NDArray[np.int64]:

@@ -47,6 +47,10 @@ class PathGuard:
         self._tree: cKDTree | None = None
         self._new_centers = np.zeros((0, 3))
         self._voxel_m = 0.0
+        self.blocking_centers_m: FloatArray = np.zeros((0, 3))
+        """The new voxels (K, 3) [m] near the state where the last confirmed `blocked_state` found
+        the path blocked, at least one within the padded links' reach; empty when it found the
+        path clear. What stopped a motion, for reports."""
 
     def warm_up(self, q: npt.ArrayLike) -> None:
         """Compile the kernels and run both stages once at `q` (n,), then forget it all: the
@@ -118,6 +122,7 @@ class PathGuard:
         Suspects are confirmed deepest first (the sphere furthest inside a voxel's reach): when an
         obstacle really lands on the path that state almost always collides, so the stop is
         decided by one FCL check instead of one per grazing state before it."""
+        self.blocking_centers_m = np.zeros((0, 3))
         if self._tree is None:
             return None
         states = self.states_ahead(path, q_now)
@@ -148,6 +153,7 @@ class PathGuard:
             balls = self._tree.query_ball_point(centers[m][near[m]], r=reach[m][near[m]])
             indices = np.unique(np.fromiter((i for ball in balls for i in ball), dtype=np.int64))
             if self._confirm.touches_cubes(states[m], self._new_centers[indices], self._voxel_m + 2.0 * inflation[m]):
+                self.blocking_centers_m = self._new_centers[indices]
                 return states[m]
         return None
 

@@ -45,6 +45,7 @@ from robonav.pipeline.sim.scenes import Scene, clutter_scene, mbm_scenes, scene_
 from robonav.pipeline.wire.messages import ErrorReply, SimStatsRequest, SimStatsResponse
 from robonav.services.campaign.monitors import Monitors
 from robonav.services.campaign.scene import MOVING_SPEED_FACTOR, SceneRunner
+from robonav.services.campaign.stops import stopped_by_fill_below, stopped_for_nothing
 from robonav.services.client import QueryFailed, RobonavClient
 from robonav.services.common import add_logging_arguments, open_session, setup_logging
 from robonav.services.config import RobonavConfig, default_config_path, load_config
@@ -183,6 +184,7 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
     distances = [s["min_distance_m"] for s in scenes if s["min_distance_m"] is not None]
     padding = cfg.robot.padding_m
     box_arrived = [_box_arrived(p) for g in goals for p in g.get("plans_through_box", [])]
+    stops = [stop for g in goals for stop in g.get("guard_stop_voxels", [])]
     summary: dict[str, Any] = {
         "robot": cfg.robot.name, "joint_names": list(cfg.robot.joint_names),
         "scenes": len(scenes), "seed": args.seed, "source": args.source, "noise": not args.no_noise,
@@ -213,6 +215,8 @@ def summarize(scenes: list[dict[str, Any]], monitors: Monitors, cfg: RobonavConf
         "planning_ms": _percentiles([ms for g in goals for ms in g["planning_ms"]]),
         "perception_latency_ms": _percentiles([s * 1e3 for s in monitors.perception_latency_s], 1),
         "replans": sum(g["replans"] for g in goals), "guard_stops": sum(g["guard_stops"] for g in goals),
+        "guard_stops_for_nothing": sum(stopped_for_nothing(stop) for stop in stops),
+        "guard_stops_fill_below": sum(stopped_by_fill_below(stop) for stop in stops),
         "executor_stops": sum(g.get("executor_stops", 0) for g in goals),
         "executor_faults": _count([code for g in goals for code in g.get("executor_faults", [])]),
         "executor_stop_after_frame_ms": _percentiles([s * 1e3 for g in goals for s in g.get("executor_stop_after_frame_s", [])], 1),
@@ -273,6 +277,8 @@ def table(summary: dict[str, Any]) -> str:
         ("perception latency ms p50 / p95", f"{summary['perception_latency_ms']['p50']} / {summary['perception_latency_ms']['p95']}"),
         ("replans (guard stops, executor stops)",
          f"{summary['replans']} ({summary['guard_stops']}, {summary.get('executor_stops', 0)})"),
+        ("guard stops on voxels no object explains (below one)",
+         f"{summary.get('guard_stops_for_nothing', 0)} ({summary.get('guard_stops_fill_below', 0)})"),
         ("executor stop after frame ms p50 / p95", f"{summary.get('executor_stop_after_frame_ms', {}).get('p50')} / "
                                                    f"{summary.get('executor_stop_after_frame_ms', {}).get('p95')}"),
         ("executor watchdog stops", ", ".join(f"{code} {n}" for code, n in summary.get("executor_faults", {}).items())

@@ -37,6 +37,7 @@ from robonav.pipeline.wire.messages import (
 from robonav.services.campaign.intruder import INTRUDER_SLIDE_S, IntruderPlacer
 from robonav.services.campaign.jog import jog
 from robonav.services.campaign.maps import CampaignMaps
+from robonav.services.campaign.stops import judge_guard_stop, true_objects
 from robonav.services.client import QueryFailed, RobonavClient, trajectory_outcome
 from robonav.services.config import RobonavConfig
 from robonav.services.planner.scene_specs import object_spec
@@ -96,6 +97,8 @@ class GoalRecord:
     start_escapes: int = 0
     """Plans that first left the padding around the map at the start (PlanResponse.start_escaped)."""
     guard_stops: int = 0
+    guard_stop_voxels: list[dict[str, Any]] = field(default_factory=list)
+    """For each guard stop, its blocking voxels judged against the truth (`stops.judge_guard_stop`)."""
     planning_ms: list[float] = field(default_factory=list)
     plan_min_clearance_m: float | None = None
     """Smallest clearance the planner reported (robot to its map) [m]."""
@@ -459,9 +462,21 @@ class SceneRunner:
                     record.guard_map_age_s = round(time.time() - occupancy.stamp, 3)
                 log.info("%s: the rest of the path is blocked in map %d: stopping to replan", trajectory_id, seen_seq)
                 self.client.stop()
+                record.guard_stop_voxels.append(self._judge_stop(occupancy.resolution_m))
                 self.client.wait_for(finished, 10.0)
                 return "guard_stop"
         return "timeout"
+
+    def _judge_stop(self, voxel_m: float) -> dict[str, Any]:
+        """The guard's blocking voxels against the true objects, the box where the sim has it now."""
+        assert self.guard is not None
+        try:
+            listed = self._objects(SimObjectsRequest(operation="list")).objects
+        except (RuntimeError, QueryFailed) as exc:  # a report, not worth the goal
+            return {"error": str(exc)}
+        sliding = self._intruder_at_rest is not None and time.time() < self._intruder_rest_at
+        objects = true_objects(self._view_objects, listed, self._intruder_at_rest)
+        return judge_guard_stop(self.guard.blocking_centers_m, voxel_m, objects, box_sliding=sliding)
 
     def _arm_intruder(self, intruder: Intruder | None, trajectory_id: str, record: GoalRecord) -> bool:
         """Slide `intruder` onto the path as the arm starts (see `IntruderPlacer.place`)."""

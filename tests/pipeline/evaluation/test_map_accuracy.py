@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from robonav.pipeline.evaluation.map_accuracy import map_accuracy
+from robonav.pipeline.evaluation.map_accuracy import below_objects, map_accuracy, spurious_voxels
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
+from robonav.pipeline.transforms import make_transform
 
 RES = 0.02
 ROBOT = RobotModel.from_config(RobotConfig())
@@ -52,3 +53,22 @@ def test_voxels_inside_the_box_are_not_spurious_but_far_ones_and_ones_on_the_arm
     found = accuracy(np.vstack([voxel_centers(top_face_points()), inside, far, hand]))
     assert found.occupied == 104 and found.spurious == 3 and found.on_robot == 1
     assert found.spurious_fraction == 3 / 104
+
+
+def test_spurious_voxels_are_those_no_object_explains_and_columns_below_an_object_are_told_apart() -> None:
+    floating = SceneObject("floating", "box", (0.2, 0.3, 1.0), size_m=(0.1, 0.1, 0.1))
+    on_top, beside = [0.21, 0.31, 1.05], [0.33, 0.3, 1.0]  # on its surface; 8 cm off its side
+    column = [[0.19, 0.29, z] for z in (0.89, 0.71, 0.41)]  # straight below it, where fill_below puts voxels
+    points = np.array([on_top, beside, *column, [0.6, 0.0, 0.31]])
+    spurious = spurious_voxels(points, RES, [floating, BOX])
+    assert spurious.tolist() == [False, True, True, True, True, False]
+    # Within one voxel of a face counts as the object (noise), two voxels off does not.
+    assert not spurious_voxels(np.array([[0.27, 0.3, 1.0]]), RES, [floating])[0]
+    assert spurious_voxels(np.array([[0.31, 0.3, 1.0]]), RES, [floating])[0]
+    assert below_objects(points, [floating]).tolist() == [False, False, True, True, True, False]
+    # A turned object's footprint is that of its world-frame box; nothing is below an empty scene.
+    turned = floating.with_pose(make_transform((0.2, 0.3, 1.0), (0.0, 0.0, np.sin(np.pi / 8), np.cos(np.pi / 8))))
+    assert below_objects(np.array([[0.265, 0.3, 0.5]]), [turned])[0] and not below_objects(np.array([[0.265, 0.3, 0.5]]), [floating])[0]
+    assert below_objects(np.array([[0.27, 0.3, 0.5]]), [floating], margin_m=0.03)[0]  # grown footprint
+    assert not below_objects(np.array([[0.27, 0.3, 0.5]]), [floating])[0]
+    assert below_objects(points, []).tolist() == [False] * 6 and spurious_voxels(points, RES, []).all()

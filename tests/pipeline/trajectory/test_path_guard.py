@@ -47,6 +47,16 @@ def test_voxels_on_the_path_ahead_block_it_and_behind_do_not(guard: PathGuard) -
     assert not blocked(guard, np.zeros((0, 3)), PATH, HOME)
 
 
+def test_a_stop_names_the_new_voxels_that_blocked_it(guard: PathGuard) -> None:
+    guard.start(None)
+    blocking = cube_of_voxels(ROBOT.frame_pose(PATH[2], "panda_hand")[:3, 3])
+    far = cube_of_voxels(np.array([-0.8, -0.8, 1.2]))
+    assert blocked(guard, np.vstack([far, blocking]), PATH, HOME)
+    named = guard.blocking_centers_m
+    assert len(named) > 0 and all(np.any(np.all(np.isclose(blocking, v), axis=1)) for v in named)
+    assert not blocked(guard, far, PATH, HOME) and guard.blocking_centers_m.shape == (0, 3)  # a clear path names none
+
+
 def test_states_ahead_start_near_the_arm_and_end_at_the_goal(guard: PathGuard) -> None:
     q_now = PATH[0] + 0.5 * (PATH[1] - PATH[0])
     states = guard.states_ahead(PATH, q_now)

@@ -71,7 +71,12 @@ def test_the_summary_counts_feasible_goals_contacts_and_clearance() -> None:
         {"index": 1, "scene": "b", "moving": True, "contacts": 1, "min_distance_m": -0.001, "min_distance_pair": "hand|intruder",
          "goals": [goal(False, True, moving=True) | {"plans_through_box": [
              {"start_clearance_m": 0.02}, {"start_clearance_m": 0.1, "box_from_rest_m": 0.004},
-             {"start_clearance_m": 0.2, "box_from_rest_m": 0.4}]}]},
+             {"start_clearance_m": 0.2, "box_from_rest_m": 0.4}], "guard_stop_voxels": [
+             {"voxels": 5, "spurious": 5, "spurious_below_object": 5, "box_sliding": False},
+             {"voxels": 2, "spurious": 2, "spurious_below_object": 1, "box_sliding": False},
+             {"voxels": 3, "spurious": 3, "spurious_below_object": 3, "box_sliding": True},
+             {"voxels": 4, "spurious": 1, "spurious_below_object": 1, "box_sliding": False},
+             {"error": "sim/objects list: TIMEOUT"}]}]},
     ]
     args = argparse.Namespace(seed=1, source="clutter", no_noise=False, no_guard=False, moving_speed=0.5)
     sim_stats = SimStatsResponse(wall_time_s=60.0, sim_time_s=59.0, real_time_factor=0.98, steps=59000,
@@ -88,6 +93,10 @@ def test_the_summary_counts_feasible_goals_contacts_and_clearance() -> None:
     assert (summary["intruders"], summary["moving_speed_factor"], summary["plans_through_box"]) == (1, 0.5, 2)
     # A box 0.4 m from where it was sent had not slid there: the path crossed its place, not the box.
     assert summary["plans_through_box_not_arrived"] == 1 and "2 (1)" in table(summary)
+    # Guard stops on voxels no true object explains, the box settled; of them, all below an object.
+    assert (summary["guard_stops_for_nothing"], summary["guard_stops_fill_below"]) == (2, 1)
+    row = next(line for line in table(summary).splitlines() if line.startswith("guard stops on voxels no object"))
+    assert row.split()[-2:] == ["2", "(1)"]
     assert "reached (of feasible)" in table(summary) and "2 (1 / 1)" in table(summary)
     # Why motions stopped on their own: the executor's watchdog, the arm's refusals and brakes.
     assert summary["executor_faults"] == {"TRACKING_ERROR": 3}
