@@ -26,6 +26,7 @@ from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
 
+_CORNERS = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64)
 _NEIGHBOURS = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.int64)
 
 
@@ -114,8 +115,7 @@ def below_objects(points_m: npt.ArrayLike, objects: Sequence[SceneObject], margi
     for obj in objects:
         pose = obj.world_from_object
         center, half = obj.local_bounds_m
-        corners = (center + half * np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)])) \
-            @ pose[:3, :3].T + pose[:3, 3]
+        corners = (center + half * _CORNERS) @ pose[:3, :3].T + pose[:3, 3]
         low, high = corners.min(axis=0) - margin_m, corners.max(axis=0) + margin_m
         below |= np.all((points[:, :2] >= low[:2]) & (points[:, :2] <= high[:2]), axis=1) & (points[:, 2] < low[2])
     return below

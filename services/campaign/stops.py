@@ -41,7 +41,7 @@ def judge_guard_stop(blocking_m: npt.ArrayLike, voxel_m: float, objects: Sequenc
     of those lie below an object; `box_sliding` when it came before the intruder was due at rest
     (the box's voxels then lag the pose listed after the stop)."""
     blocking = np.asarray(blocking_m, dtype=np.float64).reshape(-1, 3)
-    spurious = spurious_voxels(blocking, voxel_m, objects) if voxel_m > 0 else np.zeros(len(blocking), dtype=bool)
+    spurious = spurious_voxels(blocking, voxel_m, objects)
     # The columns hang below the object's surface voxels, which reach past its surface.
     below = below_objects(blocking[spurious], objects, noise_reach_m(voxel_m))
     return {"voxels": int(len(blocking)), "spurious": int(np.count_nonzero(spurious)),
