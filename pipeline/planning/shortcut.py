@@ -23,7 +23,7 @@ def shortcut_path(
 ) -> FloatArray:
     """Shorten `path` by straight connections that pass `motion_valid`.
 
-    A first pass drops waypoints whose neighbours connect directly (cheap, and most of the gain
+    A first pass drops waypoints a kept one connects past directly (cheap, and most of the gain
     on a raw RRT path: on MotionBenchMaker it halves the edge checks for the same length). Each
     iteration then draws two arc-length positions on the path (anywhere, also mid-segment) and
     replaces the stretch between them by a straight segment when that is shorter and valid.
@@ -155,13 +155,39 @@ def _splice(arr: FloatArray, i1: int, i2: int, p1: FloatArray, p2: FloatArray) -
 
 
 def _drop_redundant(arr: FloatArray, motion_valid: MotionValidFn) -> FloatArray:
-    """Greedy pass: skip a waypoint when the last kept one connects straight to the next one."""
+    """Greedy pass: from each kept waypoint, on to the farthest later one it connects to straight,
+    found by galloping (the next, then 2, 4, 8 ... waypoints on) and bisecting the last gap.
+
+    Trying every next waypoint in turn checked one free connection per dropped waypoint, each
+    longer than the last, and a free connection costs all its states (a blocked one a few):
+    on MotionBenchMaker's UR5 problems a fifth of the shortcut's states for paths no shorter.
+    Validity along a path is not monotone, so a waypoint past a blocked probe may be kept that
+    a slower pass would drop; the random shortcuts and the final pass see it again."""
+    last = arr.shape[0] - 1
+    if last < 2:
+        return arr.copy()
+    # Duplicate waypoints first; the first and last rows stay, exactly.
+    distinct = [0]
+    for i in range(1, last):
+        if _distance(arr[distinct[-1]], arr[i]) > _EPS:
+            distinct.append(i)
+    arr = arr[[*distinct, last]]
+    last = arr.shape[0] - 1
     keep = [0]
-    for i in range(1, arr.shape[0] - 1):
-        if _distance(arr[keep[-1]], arr[i]) <= _EPS:
-            continue  # duplicate waypoint
-        if not motion_valid(arr[keep[-1]], arr[i + 1]):
-            keep.append(i)
-    if arr.shape[0] > 1:
-        keep.append(arr.shape[0] - 1)
+    while keep[-1] < last:
+        i = keep[-1]
+        good, bad, step = i + 1, last + 1, 1  # the path's own segment from i is valid
+        while good < last:
+            probe = min(good + step, last)
+            if not motion_valid(arr[i], arr[probe]):
+                bad = probe
+                break
+            good, step = probe, step * 2
+        while bad - good > 1:
+            middle = (good + bad) // 2
+            if motion_valid(arr[i], arr[middle]):
+                good = middle
+            else:
+                bad = middle
+        keep.append(good)
     return arr[keep].copy()

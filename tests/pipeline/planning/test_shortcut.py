@@ -60,6 +60,29 @@ def test_shortcut_keeps_needed_corner(make_point_robot) -> None:
     assert 3 <= out.shape[0] and all(robot.motion_valid(a, b) for a, b in zip(out[:-1], out[1:]))
 
 
+def test_the_first_pass_gallops_to_the_farthest_connection(make_point_robot) -> None:
+    robot = make_point_robot([(0.4, 0.0, 0.6, 0.6)])
+    # 17 waypoints up the left side, 16 across the top above the wall and 8 down its right side.
+    path = np.vstack([np.linspace([0.1, 0.1], [0.1, 0.9], 17), np.linspace([0.15, 0.9], [0.9, 0.9], 16),
+                      np.linspace([0.9, 0.8], [0.9, 0.1], 8)])
+    checked: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def counted(a: np.ndarray, b: np.ndarray) -> bool:
+        checked.append((a, b))
+        return robot.motion_valid(a, b)
+
+    out = shortcut_path(path, motion_valid=counted, rng=np.random.default_rng(0), iterations=0)
+    assert all(robot.motion_valid(a, b) for a, b in zip(out[:-1], out[1:]))
+    np.testing.assert_array_equal(out[[0, -1]], path[[0, -1]])
+    # One corner above the wall stays: trying each next waypoint in turn took a check per
+    # waypoint (40 in all); galloping and bisecting take a few per kept one (14).
+    assert 3 <= out.shape[0] <= 5
+    assert len(checked) <= 25
+    dropped = shortcut_path(np.repeat(path[:3], 2, axis=0), motion_valid=robot.motion_valid,
+                            rng=np.random.default_rng(0), iterations=0)
+    np.testing.assert_array_equal(dropped, path[[0, 2]])  # duplicate waypoints go, the ends stay
+
+
 def test_patience_stops_when_nothing_shortens(make_point_robot) -> None:
     robot = make_point_robot([(0.4, 0.0, 0.6, 0.95)])
     path = np.array([[0.1, 0.1], [0.1, 0.97], [0.9, 0.97], [0.9, 0.1]])  # the corners are needed
