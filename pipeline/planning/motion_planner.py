@@ -70,7 +70,7 @@ class MotionPlanner:
                                            if self._sphere_first else world.motion_valid(a, b, resolution))
         self._space = OmplSpace(
             JointSpaceProblem(robot.lower_limits_rad, robot.upper_limits_rad, self._is_valid, self._motion_valid),
-            range_rad=config.range_rad, focus_margin_rad=config.focus_margin_rad)
+            range_rad=config.range_rad, focus_margin_of_range=config.focus_margin_of_range)
         self._space_revision = world.revision
         self._history: dict[str, deque[bool]] = {}
 
@@ -288,7 +288,7 @@ class MotionPlanner:
                 else:  # workspace bounds: a roadmap checked without them cannot be reused
                     space = OmplSpace(JointSpaceProblem(self.robot.lower_limits_rad, self.robot.upper_limits_rad,
                                                         is_valid, motion_valid), range_rad=self.config.range_rad,
-                                      focus_margin_rad=self.config.focus_margin_rad)
+                                      focus_margin_of_range=self.config.focus_margin_of_range)
                     result = space.solve(planner_id, start, goals, time_limit_s=remaining_s, stop=problem.stop)
             else:
                 result = self._baseline(planner_id, start, goals, is_valid, motion_valid, remaining_s, rng)

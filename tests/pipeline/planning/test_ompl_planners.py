@@ -165,16 +165,16 @@ def test_resume_grows_the_trees_of_the_unsolved_query_on(make_point_robot) -> No
 def test_the_focus_box_grows_the_ends_by_the_margin_within_the_bounds(make_point_robot) -> None:
     robot = make_point_robot([])
     space = OmplSpace(JointSpaceProblem(robot.lower, robot.upper, robot.is_valid, robot.motion_valid),
-                      focus_margin_rad=0.1)
+                      focus_margin_of_range=0.1)
     lower, upper = space.focus_box(np.array([0.2, 0.05]), np.array([[0.3, 0.5], [0.25, 0.6]]))
     np.testing.assert_allclose(lower, [0.1, 0.0])  # 0.05 - 0.1 is cut at the bound
     np.testing.assert_allclose(upper, [0.4, 0.7])
     assert space.focus_box(np.array([0.05, 0.05]), np.array([[0.95, 0.95]])) is None  # all of it
     unfocused = OmplSpace(JointSpaceProblem(robot.lower, robot.upper, robot.is_valid, robot.motion_valid))
     assert unfocused.focus_box(np.array([0.2, 0.2]), np.array([[0.3, 0.3]])) is None
-    with pytest.raises(ValueError, match="focus_margin_rad"):
+    with pytest.raises(ValueError, match="focus_margin_of_range"):
         OmplSpace(JointSpaceProblem(robot.lower, robot.upper, robot.is_valid, robot.motion_valid),
-                  focus_margin_rad=float("nan"))
+                  focus_margin_of_range=float("nan"))
 
 
 @pytest.mark.parametrize("margin", [0.0, 0.1])
@@ -192,7 +192,7 @@ def test_a_focused_search_samples_around_its_ends_first(make_point_robot, margin
     for _ in range(10):  # unfocused, 6 searches in 10 go beyond the box
         checked.clear()
         space = OmplSpace(JointSpaceProblem(robot.lower, robot.upper, robot.is_valid, motion_valid),
-                          range_rad=0.05, focus_margin_rad=margin)
+                          range_rad=0.05, focus_margin_of_range=margin)
         result = space.solve("rrtconnect", np.array([0.3, 0.35]), np.array([[0.7, 0.35]]), time_limit_s=2.0)
         assert result.success, result.detail
         farthest.append(max(abs(q[1] - 0.35) for q in checked))
@@ -206,7 +206,7 @@ def test_a_focused_search_leaves_the_box_when_the_way_is_outside(make_point_robo
     # A wall across the whole focus box: the only way round passes far above it.
     robot = make_point_robot([(0.45, 0.0, 0.55, 0.8)])
     space = OmplSpace(JointSpaceProblem(robot.lower, robot.upper, robot.is_valid, robot.motion_valid),
-                      focus_margin_rad=0.1)
+                      focus_margin_of_range=0.1)
     result = space.solve("rrtconnect", np.array([0.3, 0.3]), np.array([[0.7, 0.3]]), time_limit_s=0.5)
     assert result.success, result.detail
     assert result.path[:, 1].max() > 0.8
