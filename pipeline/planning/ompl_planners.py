@@ -353,7 +353,6 @@ class OmplSpace:
         path[-1] = goals[int(np.argmin(np.max(np.abs(goals - path[-1]), axis=1)))]
         return PlanResult(PlanStatus.SUCCESS, path, f"{planner_id}: {path.shape[0]} waypoints", elapsed)
 
-
     @staticmethod
     def _run(planner: ob.Planner, time_limit_s: float, stop: Callable[[], bool] | None) -> ob.PlannerStatus:
         timed = ob.timedPlannerTerminationCondition(float(time_limit_s))

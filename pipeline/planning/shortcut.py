@@ -159,8 +159,9 @@ def _drop_redundant(arr: FloatArray, motion_valid: MotionValidFn) -> FloatArray:
     found by galloping (the next, then 2, 4, 8 ... waypoints on) and bisecting the last gap.
 
     Trying every next waypoint in turn checked one free connection per dropped waypoint, each
-    longer than the last, and a free connection costs all its states (a blocked one a few):
-    on MotionBenchMaker's UR5 problems a fifth of the shortcut's states for paths no shorter.
+    longer than the last, and a free connection costs all its states (a blocked one a few). On
+    the same raw paths of MotionBenchMaker's UR5 problems, galloping took the whole shortcut
+    about an eighth less time, for paths as long.
     Validity along a path is not monotone, so a waypoint past a blocked probe may be kept that
     a slower pass would drop; the random shortcuts and the final pass see it again."""
     last = arr.shape[0] - 1

@@ -197,7 +197,7 @@ def test_a_focused_search_samples_around_its_ends_first(make_point_robot, margin
         assert result.success, result.detail
         farthest.append(max(abs(q[1] - 0.35) for q in checked))
     if margin:
-        assert max(farthest) <= margin + 1e-9  # inside the box: y within 0.1 of the ends'
+        assert max(farthest) <= margin + 1e-9  # inside the box: y within 0.1 of the ends
     else:
         assert max(farthest) > 0.1, farthest
 
