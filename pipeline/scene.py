@@ -13,6 +13,8 @@ from robonav.pipeline.config import require
 from robonav.pipeline.transforms import make_transform, quat_xyzw_from_rotation
 from robonav.pipeline.types import FloatArray
 
+_CORNER_SIGNS = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64)
+
 ObjectType = Literal["box", "cylinder", "sphere", "capsule", "mesh"]
 OBJECT_TYPES: tuple[str, ...] = ("box", "cylinder", "sphere", "capsule", "mesh")
 
@@ -124,6 +126,13 @@ class SceneObject:
         assert self.length_m is not None
         cap = self.radius_m if self.type == "capsule" else 0.0
         return np.zeros(3), np.array([self.radius_m, self.radius_m, 0.5 * self.length_m + cap])
+
+    @property
+    def bounds_corners_m(self) -> FloatArray:
+        """(8, 3) corners of `local_bounds_m`'s box, posed in the world frame [m]."""
+        center, half = self.local_bounds_m
+        pose = self.world_from_object
+        return (center + half * _CORNER_SIGNS) @ pose[:3, :3].T + pose[:3, 3]
 
     def with_pose(self, world_from_object: FloatArray) -> SceneObject:
         """A copy of this object placed at `world_from_object` (4, 4); shape and name unchanged."""

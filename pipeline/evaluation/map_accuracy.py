@@ -26,7 +26,6 @@ from robonav.pipeline.perception.self_filter import SelfFilter
 from robonav.pipeline.scene import SceneObject
 from robonav.pipeline.types import FloatArray
 
-_CORNERS = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64)
 _NEIGHBOURS = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.int64)
 
 
@@ -113,9 +112,7 @@ def below_objects(points_m: npt.ArrayLike, objects: Sequence[SceneObject], margi
     points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
     below = np.zeros(points.shape[0], dtype=bool)
     for obj in objects:
-        pose = obj.world_from_object
-        center, half = obj.local_bounds_m
-        corners = (center + half * _CORNERS) @ pose[:3, :3].T + pose[:3, 3]
+        corners = obj.bounds_corners_m
         low, high = corners.min(axis=0) - margin_m, corners.max(axis=0) + margin_m
         below |= np.all((points[:, :2] >= low[:2]) & (points[:, :2] <= high[:2]), axis=1) & (points[:, 2] < low[2])
     return below

@@ -70,7 +70,7 @@ class IntruderPlacer:
     def pixels_seen(self, box: SceneObject, q: np.ndarray) -> int:
         """The most pixels of `box` a camera shows that holds all of it in its view (0 if none
         does), the arm at `q` and the scene in front of it."""
-        corners = box_corners_m(box)
+        corners = box.bounds_corners_m
         cameras = [camera for camera in self.cfg.cameras if camera.holds(corners)]
         if not cameras:
             return 0
@@ -81,10 +81,3 @@ class IntruderPlacer:
         finally:
             self._eyes.remove_object(box.name)
 
-
-def box_corners_m(obj: SceneObject) -> np.ndarray:
-    """(8, 3) corners of `obj`'s bounding box in its own frame, in the world frame [m]."""
-    center, half = obj.local_bounds_m
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
-    pose = obj.world_from_object
-    return (center + signs * half) @ pose[:3, :3].T + pose[:3, 3]

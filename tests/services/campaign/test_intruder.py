@@ -7,7 +7,7 @@ import numpy as np
 
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.services.campaign.intruder import INTRUDER_MIN_PIXELS, IntruderPlacer, box_corners_m
+from robonav.services.campaign.intruder import INTRUDER_MIN_PIXELS, IntruderPlacer
 from robonav.services.config import load_config
 
 
@@ -29,7 +29,7 @@ def test_a_box_across_the_image_edge_counts_as_unseen_however_many_pixels_show()
         home = np.asarray(cfg.robot.home_position_rad)
         across_top = _box_seen_at((camera.intrinsics.cx, -0.5), 1.2)
         in_view = _box_seen_at((camera.intrinsics.cx, camera.intrinsics.cy), 1.2)
-        assert not camera.holds(box_corners_m(across_top)) and camera.holds(box_corners_m(in_view))
+        assert not camera.holds(across_top.bounds_corners_m) and camera.holds(in_view.bounds_corners_m)
         # The pixel count alone would take it: half the box shows in the image's top rows.
         placer._eyes.add_object(across_top)
         shown = placer._eyes.pixels_of(across_top.name, [camera])[0]
@@ -44,7 +44,7 @@ def test_a_box_across_the_image_edge_counts_as_unseen_however_many_pixels_show()
 def test_box_corners_follow_the_box_pose() -> None:
     box = SceneObject(name="b", type="box", position_m=(1.0, 2.0, 3.0), quat_xyzw=(0.0, 0.0, np.sin(np.pi / 8), np.cos(np.pi / 8)),
                       size_m=(0.2, 0.1, 0.4))
-    corners = box_corners_m(box)
+    corners = box.bounds_corners_m
     assert corners.shape == (8, 3)
     np.testing.assert_allclose(corners.mean(axis=0), [1.0, 2.0, 3.0], atol=1e-12)
     np.testing.assert_allclose(np.ptp(corners[:, 2]), 0.4, atol=1e-12)  # the turn is about z
