@@ -83,19 +83,21 @@ class SphereFirstChecks:
                                    resolution_rad, exact)
 
     def _suspects_free(self: CollisionWorld, a: FloatArray, b: FloatArray, resolution_rad: float,
-                       exact: StateValidFn) -> bool:
+                       exact: StateValidFn, checked_rad: float = 0.0) -> bool:
         """The edge's broad-phase suspects, each checked at its own clearance tier, in
         `motion_valid` order, are each either asked of FCL (where `exact`) and free, or none
         exist. The first suspect is tried alone first because a blocked edge's first suspect
         usually is a collision."""
         anchors, radius_sq = self.tier_anchors
         edge = self._broad_phase.edge_suspects
-        first, tiers, steps = edge(a, b, resolution_rad, first_only=True, anchors=anchors, anchor_radius_sq=radius_sq)
+        first, tiers, steps = edge(a, b, resolution_rad, first_only=True, anchors=anchors, anchor_radius_sq=radius_sq,
+                                   checked_rad=checked_rad)
         if first.size == 0:
             return True
         if not self._suspect_free(a + (b - a) * (first[0] / steps), exact, -1 if tiers is None else int(tiers[0])):
             return False
-        suspects, tiers, _ = edge(a, b, resolution_rad, anchors=anchors, anchor_radius_sq=radius_sq)
+        suspects, tiers, _ = edge(a, b, resolution_rad, anchors=anchors, anchor_radius_sq=radius_sq,
+                                  checked_rad=checked_rad)
         for i in range(1, suspects.size):
             if not self._suspect_free(a + (b - a) * (suspects[i] / steps), exact, -1 if tiers is None else int(tiers[i])):
                 return False

@@ -344,24 +344,33 @@ class CollisionWorld(ClearanceQueries, SphereFirstChecks, SurfaceAllowance, Atta
         """
         return self._map_aware_check(self._robot.validate_q(q), first_only=False, padded=padded)
 
-    def motion_valid(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float) -> bool:
+    def motion_valid(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float, *,
+                     checked_rad: float = 0.0) -> bool:
         """True when every state on the straight joint-space segment from `q_a` to `q_b` is free.
 
         States are spaced at most `resolution_rad` apart in every joint; both ends are checked.
         The end `q_b` is checked first, then the interior in bisection order, then `q_a`, so a
         blocked edge is usually rejected after a few states.
+
+        With `checked_rad` > 0 the caller vouches that the segment passed this check, or a
+        stricter one, at that step: the states the two checks share are not checked again
+        (`SphereBroadPhase.edge_suspects`).
         """
         a = self._robot.validate_q(q_a, "q_a")
         b = self._robot.validate_q(q_b, "q_b")
+        if not 0 <= checked_rad < math.inf:  # NaN fails too
+            raise ValueError(f"checked_rad must be finite and >= 0, got {checked_rad}")
         if self._broad_phase_usable():
-            return self._suspects_free(a, b, resolution_rad, lambda _q: True)
+            return self._suspects_free(a, b, resolution_rad, lambda _q: True, checked_rad)
         steps = step_count(a, b, resolution_rad)
-        if self._map_aware_check(b, first_only=True):
-            return False
-        for k in bisection_order(steps):
-            if self._map_aware_check(a + (b - a) * (k / steps), first_only=True):
+        every = steps // math.gcd(steps, step_count(a, b, checked_rad)) if checked_rad > 0 else 0
+        for k in (steps, *bisection_order(steps), 0):
+            if every and k % every == 0:
+                continue
+            q = b if k == steps else a if k == 0 else a + (b - a) * (k / steps)
+            if self._map_aware_check(q, first_only=True):
                 return False
-        return not self._map_aware_check(a, first_only=True)
+        return True
 
     def path_valid(self, path: FloatArray, resolution_rad: float) -> bool:
         """True when every segment of `path` (K, dof), K >= 1, passes `motion_valid`."""

@@ -413,8 +413,8 @@ class SphereBroadPhase:
         return bool(self.suspect_pairs(q)[2].any())
 
     def edge_suspects(self, q_a: FloatArray, q_b: FloatArray, resolution_rad: float, *, first_only: bool = False,
-                      tier: int = -1, anchors: FloatArray | None = None,
-                      anchor_radius_sq: float = 0.0) -> tuple[np.ndarray, np.ndarray | None, int]:
+                      tier: int = -1, anchors: FloatArray | None = None, anchor_radius_sq: float = 0.0,
+                      checked_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray | None, int]:
         """Suspect states of the straight segment, in `CollisionWorld.motion_valid` order.
 
         The segment has `steps` = max(1, ceil(max|b - a| / resolution_rad)) intervals; state k is
@@ -422,6 +422,12 @@ class SphereBroadPhase:
         then the interior in bisection order, then k = 0 (q_a). Every state keeps the clearance of
         `tier`, or with `anchors` (K, dof) that of its own tier (`edge_lanes.state_tier`: by its
         squared joint-space distance to the nearest anchor against `anchor_radius_sq`).
+
+        With `checked_rad` > 0 the segment's states at that step are known free (it passed this
+        check at `checked_rad`): those of its own states that are among them are not checked
+        again (k = 0, m, 2m ..., m = steps / gcd(steps, c), c their count: every second state
+        when `steps` = 2 c). The states themselves stay those of `resolution_rad`, so another
+        check at that step (a benchmark's) sees the same states.
 
         Returns:
             (M,) int64 step indices k of the suspect states in visiting order (at most one when
@@ -434,19 +440,21 @@ class SphereBroadPhase:
         b = np.ascontiguousarray(q_b, dtype=np.float64)
         if not resolution_rad > 0 or resolution_rad == math.inf:  # NaN fails the first test
             raise ValueError(f"resolution_rad must be finite and > 0, got {resolution_rad}")
+        if not 0 <= checked_rad < math.inf:
+            raise ValueError(f"checked_rad must be finite and >= 0, got {checked_rad}")
         anchored = anchors is not None and anchors.shape[0] > 0
         anchors = _kernel_anchors(anchors) if anchored else self._no_anchors
         world = self._lane_worlds[-1 if anchored else tier]
         # Plain float and bool: an int would make numba compile another specialisation.
         resolution_rad, first_only = float(resolution_rad), bool(first_only)
         count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue, world,
-                                          anchors, float(anchor_radius_sq))
+                                          anchors, float(anchor_radius_sq), float(checked_rad))
         if count < 0:
             # order (steps + 1 entries) and the FIFO of spans (< 2 * steps + 1 entries) share `_queue`.
             self._step_buffer = np.zeros((2 * steps + 2, 2), dtype=np.int64)
             self._queue = np.zeros((2 * steps + 2, 2), dtype=np.int64)
             count, steps = edge_suspect_steps(a, b, resolution_rad, first_only, self._step_buffer, self._queue, world,
-                                              anchors, float(anchor_radius_sq))
+                                              anchors, float(anchor_radius_sq), float(checked_rad))
         # Most edges have no suspect: no slice and copy (read-only, shared); without anchors every
         # state was checked at `tier`, and no tiers are copied (this runs for every blocked edge).
         if count == 0:

@@ -59,20 +59,28 @@ def state_suspect_tiered(q: FloatArray, world: LaneWorld, anchors: FloatArray,
 
 @nb.njit(cache=True)
 def edge_suspect_steps(a: FloatArray, b: FloatArray, resolution: float, first_only: bool, out: IntArray,
-                       queue: IntArray, world: LaneWorld, anchors: FloatArray,
-                       radius_sq: float) -> tuple[int, int]:  # pragma: no cover
+                       queue: IntArray, world: LaneWorld, anchors: FloatArray, radius_sq: float,
+                       checked_resolution: float) -> tuple[int, int]:  # pragma: no cover
     """(count of suspects written to `out`, steps), or (-1, steps) when `out` and `queue` have
     fewer than 2 * steps + 2 rows. See `SphereBroadPhase.edge_suspects`.
 
     A suspect's row of `out` (M, 2) holds its step and its tier. With anchors (K, dof), K > 0,
     a state of tier t keeps world.tier_clearance[t] from the voxels and one of tier -1 the last
     entry (tier_clearance has tiers + 1 entries); without, every state keeps
-    world.grid_clearance and its tier reads -1."""
+    world.grid_clearance and its tier reads -1.
+
+    With checked_resolution > 0, the edge's states at that resolution are known free: those of
+    its own states that are among them (k = 0, m, 2m ..., m = steps / gcd(steps, their count))
+    are skipped."""
     dof = a.shape[0]
     longest = 0.0
     for j in range(dof):
         longest = max(longest, abs(b[j] - a[j]))
     steps = max(1, int(math.ceil(longest / resolution - 1e-9)))
+    known_every = 0
+    if checked_resolution > 0:
+        checked = max(1, int(math.ceil(longest / checked_resolution - 1e-9)))
+        known_every = steps // math.gcd(steps, checked)
     if out.shape[0] < 2 * steps + 2 or queue.shape[0] < 2 * steps + 2:
         return -1, steps
     # cos and sin of every state's joints by a rotation per step (a sine and a cosine per joint
@@ -111,6 +119,13 @@ def edge_suspect_steps(a: FloatArray, b: FloatArray, resolution: float, first_on
         tail += 2
     order[n_order] = 0
     n_order += 1
+    if known_every > 0:
+        kept = 0
+        for i in range(n_order):
+            if order[i] % known_every != 0:
+                order[kept] = order[i]
+                kept += 1
+        n_order = kept
     cos_lanes, sin_lanes, q_lanes, flags = world.cos_lanes, world.sin_lanes, world.q_lanes, world.flags
     lane_clearance, lane_tier, tier_clearance = world.lane_clearance, world.lane_tier, world.tier_clearance
     tiers = tier_clearance.shape[0] - 1

@@ -217,6 +217,21 @@ def test_motion_checks_both_ends(panda: RobotModel, world: CollisionWorld) -> No
     assert world.motion_valid(free, free, 0.02)
 
 
+@pytest.mark.parametrize("broad_phase", [True, False])
+def test_motion_skips_the_states_a_coarser_check_passed(panda: RobotModel, broad_phase: bool) -> None:
+    world = CollisionWorld(panda, padding_m=0.0, broad_phase=broad_phase)
+    world.set_objects([BLOCK])
+    free_a, free_b, blocked = _swing(panda, -1.0), _swing(panda, 1.0), _swing(panda, 0.0)
+    longest = float(np.max(np.abs(free_b - free_a)))
+    # Vouched for at its ends only, the segment is still checked between them: the block is there.
+    assert not world.motion_valid(free_a, free_b, longest / 2, checked_rad=longest)
+    # What the caller vouches for is not checked again: here, falsely, a blocked end.
+    assert not world.motion_valid(free_a, blocked, 10.0)
+    assert world.motion_valid(free_a, blocked, 10.0, checked_rad=10.0)
+    with pytest.raises(ValueError, match="checked_rad"):
+        world.motion_valid(free_a, free_b, 0.02, checked_rad=float("nan"))
+
+
 def test_input_errors(panda: RobotModel, world: CollisionWorld) -> None:
     with pytest.raises(ValueError, match=r"shape \(7,\)"):
         world.in_collision(np.zeros(6))

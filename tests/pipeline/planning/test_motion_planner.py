@@ -258,25 +258,46 @@ def test_the_returned_path_is_rechecked_at_the_path_check_resolution(panda: Robo
     assert len(outcome.path) > 2 and world.path_valid(outcome.path, 0.01)
 
 
+def test_the_recheck_trusts_what_the_shortcut_accepted(panda: RobotModel) -> None:
+    """At the edge resolution, a segment the shortcut's check accepted is not checked again."""
+    planner = MotionPlanner(panda, CollisionWorld(panda, padding_m=0.0), PlannerConfig())
+    home = panda.home_position_rad
+    raw = np.array([home, home + 0.3, home - 0.3, home + 0.1])
+    asked: list[tuple[tuple[float, ...], tuple[float, ...]]] = []
+
+    def free(a: np.ndarray, b: np.ndarray) -> bool:
+        asked.append((tuple(a), tuple(b)))
+        return True
+
+    outcome = planner._finish(PlanProblem(home, raw[-1], seed=0), raw, raw[-1:], free, "rrtconnect", 0.0,  # noqa: SLF001
+                              np.random.default_rng(0))
+    np.testing.assert_array_equal(outcome.path, raw[[0, -1]])
+    assert asked[-1] == (tuple(home), tuple(raw[-1])) and len(set(asked)) == len(asked)
+
+
 def test_a_shortcut_path_that_fails_the_recheck_falls_back_to_the_searched_path(panda: RobotModel) -> None:
     """Shortcutting keeps pieces of checked segments unchecked, so the re-check may refuse its
-    path; the search's own path (here: a check that only trusts its segments) is returned."""
+    path; the search's own path (here: a check that refuses those pieces) is returned. What the
+    shortcut's own checks accepted is not asked again."""
     planner = MotionPlanner(panda, CollisionWorld(panda, padding_m=0.0), PlannerConfig())
     home = panda.home_position_rad
     raw = np.array([home, home + 0.3, home - 0.3, home + 0.1])
     raw_segments = {(tuple(a), tuple(b)) for a, b in zip(raw[:-1], raw[1:])}
-    asked: set[tuple[tuple[float, ...], tuple[float, ...]]] = set()
+    waypoints = {tuple(q) for q in raw}
+    asked: list[tuple[tuple[float, ...], tuple[float, ...]]] = []
 
-    def first_answer_only(a: np.ndarray, b: np.ndarray) -> bool:
-        """Every segment of the raw path passes; any other passes only the first time it is asked."""
+    def refuses_pieces(a: np.ndarray, b: np.ndarray) -> bool:
+        """The raw path's segments pass, and connections between two points inside its
+        segments (the shortcut's); none from a waypoint to such a point (the pieces it keeps)."""
         key = (tuple(a), tuple(b))
-        fresh = key not in asked
-        asked.add(key)
-        return key in raw_segments or fresh
+        asked.append(key)
+        return key in raw_segments or not ({key[0], key[1]} & waypoints)
 
     problem = PlanProblem(home, raw[-1], seed=0)
-    outcome = planner._finish(problem, raw, raw[-1:], first_answer_only, "rrtconnect", 0.0,  # noqa: SLF001
+    outcome = planner._finish(problem, raw, raw[-1:], refuses_pieces, "rrtconnect", 0.0,  # noqa: SLF001
                               np.random.default_rng(0))
-    assert any(key not in raw_segments for key in asked)  # the shortcut did change the path
+    accepted = [key for key in asked if key not in raw_segments and not ({key[0], key[1]} & waypoints)]
+    assert accepted  # the shortcut did change the path
+    assert len(set(accepted)) == len(accepted)  # and the re-check trusted what it had accepted
     assert outcome.status is PlanStatus.SUCCESS
     np.testing.assert_array_equal(outcome.path, raw)

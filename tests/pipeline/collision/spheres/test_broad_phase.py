@@ -122,6 +122,13 @@ def test_edge_visits_states_in_motion_valid_order(panda: RobotModel) -> None:
     assert suspects.tolist() == [37, *bisection_order(37), 0]
     first, _, _ = broad.edge_suspects(a, b, 0.01, first_only=True)
     assert first.tolist() == [37]
+    # Passed at 0.02 rad (19 steps): of the 37 steps at 0.01 rad only the ends are among its states.
+    suspects, _, steps = broad.edge_suspects(a, b, 0.01, checked_rad=0.02)
+    assert steps == 37 and suspects.tolist() == [k for k in (37, *bisection_order(37), 0) if k % 37]
+    assert broad.edge_suspects(a, b, 0.01, checked_rad=0.01)[0].size == 0  # all of them known
+    # 0.375 rad at 1/16 rad (6 steps) after 1/8 rad (3 steps): every second state is known.
+    suspects, _, steps = broad.edge_suspects(a, a + 0.375, 0.0625, checked_rad=0.125)
+    assert steps == 6 and suspects.tolist() == [k for k in (6, *bisection_order(6), 0) if k % 2]
     broad.clear_objects()
     assert broad.edge_suspects(a, b, 0.01)[0].size == 0
     assert not broad.state_suspect(panda.home_position_rad)
