@@ -387,7 +387,7 @@ class MotionPlanner:
         `checked` holds the segments (`_segment_key`) that passed `motion_valid` in this query:
         every state it checked is free exactly too (the sphere-first check accepts only states
         its spheres clear or FCL does), so the re-check skips them: all of them at the edge
-        resolution, every m-th at a finer one (`CollisionWorld.motion_valid(checked_rad=)`)."""
+        resolution, at a finer one those both grids hold (`CollisionWorld.motion_valid(checked_rad=)`)."""
         fine_rad = self.config.path_check_resolution_rad
         extra = motion_valid is not self._motion_valid
         for a, b in zip(path[:-1], path[1:]):
