@@ -68,11 +68,14 @@ class MotionPlanner:
                                     else not world.in_collision(q))
         self._motion_valid = lambda a, b: (world.motion_free_by_spheres(a, b, resolution, self._near_anchor)
                                            if self._sphere_first else world.motion_valid(a, b, resolution))
-        self._space = OmplSpace(
-            JointSpaceProblem(robot.lower_limits_rad, robot.upper_limits_rad, self._is_valid, self._motion_valid),
-            range_rad=config.range_rad, focus_margin_of_range=config.focus_margin_of_range)
+        self._space = self._new_space(self._is_valid, self._motion_valid)
         self._space_revision = world.revision
         self._history: dict[str, deque[bool]] = {}
+
+    def _new_space(self, is_valid: StateValidFn, motion_valid: MotionValidFn) -> OmplSpace:
+        return OmplSpace(JointSpaceProblem(self.robot.lower_limits_rad, self.robot.upper_limits_rad, is_valid,
+                                           motion_valid),
+                         range_rad=self.config.range_rad, focus_margin_of_range=self.config.focus_margin_of_range)
 
     def _sync_world(self) -> None:
         if self.world.revision != self._space_revision:
@@ -286,10 +289,9 @@ class MotionPlanner:
                                                resume=resume)
                     resume = False  # a path that failed the re-check is drawn afresh
                 else:  # workspace bounds: a roadmap checked without them cannot be reused
-                    space = OmplSpace(JointSpaceProblem(self.robot.lower_limits_rad, self.robot.upper_limits_rad,
-                                                        is_valid, motion_valid), range_rad=self.config.range_rad,
-                                      focus_margin_of_range=self.config.focus_margin_of_range)
-                    result = space.solve(planner_id, start, goals, time_limit_s=remaining_s, stop=problem.stop)
+                    result = self._new_space(is_valid, motion_valid).solve(planner_id, start, goals,
+                                                                            time_limit_s=remaining_s,
+                                                                            stop=problem.stop)
             else:
                 result = self._baseline(planner_id, start, goals, is_valid, motion_valid, remaining_s, rng)
             self._remember(planner_id, result.success)

@@ -80,4 +80,3 @@ class IntruderPlacer:
             return max(self._eyes.pixels_of(box.name, cameras))
         finally:
             self._eyes.remove_object(box.name)
-
