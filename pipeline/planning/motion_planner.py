@@ -30,6 +30,7 @@ from robonav.pipeline.planning.problem import PoseGoal as PoseGoal
 from robonav.pipeline.planning.problem import SearchMode as SearchMode
 from robonav.pipeline.planning.problem import StartEscape as StartEscape
 from robonav.pipeline.planning.race import race
+from robonav.pipeline.planning.recheck import path_rechecked, recording
 from robonav.pipeline.planning.result import PlanResult, PlanStatus
 from robonav.pipeline.planning.shortcut import shortcut_path
 from robonav.pipeline.planning.start_escape import escape_start
@@ -358,7 +359,7 @@ class MotionPlanner:
         raw = path
         checked: set[bytes] = set()
         if problem.simplify and len(path) > 2:
-            path = shortcut_path(path, motion_valid=_recording(motion_valid, checked), rng=rng,
+            path = shortcut_path(path, motion_valid=recording(motion_valid, checked), rng=rng,
                                  iterations=self.config.shortcut_iterations, patience=self.config.shortcut_patience)
         simplification_time_s = time.perf_counter() - simplify_start
         # Re-validate what we return, exactly: a path is only as good as its last check. The
@@ -367,7 +368,9 @@ class MotionPlanner:
         sphere_first, self._sphere_first = self._sphere_first, False
         candidates = [path] if path is raw else [path, raw]
         try:
-            path = next((p for p in candidates if self._revalidate(p, motion_valid, checked)), None)
+            path = next((p for p in candidates if path_rechecked(
+                self.world, p, motion_valid, checked, path_check_rad=self.config.path_check_resolution_rad,
+                edge_rad=self.config.edge_resolution_rad, own_check=motion_valid is self._motion_valid)), None)
         finally:
             self._sphere_first = sphere_first
         if path is None:
@@ -381,29 +384,6 @@ class MotionPlanner:
             min_clearance_m=self._sampled_clearance_m(path) if self.config.report_clearance else float("inf"),
             goal_index=goal_index)
 
-    def _revalidate(self, path: FloatArray, motion_valid: MotionValidFn, checked: set[bytes]) -> bool:
-        """Every segment of `path` passes the exact check at the path check resolution.
-
-        With a finer path check than the edges, the edge-resolution check is not repeated (the
-        finer one is the stricter), unless the request's own check adds workspace bounds.
-        `checked` holds the segments (`_segment_key`) that passed `motion_valid` in this query:
-        every state it checked is free exactly too (the sphere-first check accepts only states
-        its spheres clear or FCL does), so the re-check skips them: all of them at the edge
-        resolution, at a finer one those both grids hold (`CollisionWorld.motion_valid(checked_rad=)`)."""
-        fine_rad = self.config.path_check_resolution_rad
-        extra = motion_valid is not self._motion_valid
-        for a, b in zip(path[:-1], path[1:]):
-            known = _segment_key(a, b) in checked
-            if fine_rad <= 0:
-                if not (known or motion_valid(a, b)):
-                    return False
-            elif not self.world.motion_valid(a, b, fine_rad,
-                                             checked_rad=self.config.edge_resolution_rad if known else 0.0):
-                return False
-            elif extra and not known and not motion_valid(a, b):
-                return False
-        return True
-
     def _sampled_clearance_m(self, path: FloatArray) -> float:
         """Clearance at the waypoints and evenly spread states between them.
 
@@ -415,20 +395,3 @@ class MotionPlanner:
         if len(dense) > CLEARANCE_SAMPLES:
             dense = dense[np.linspace(0, len(dense) - 1, CLEARANCE_SAMPLES).round().astype(int)]
         return self.world.min_clearance_m(dense)
-
-
-def _segment_key(a: FloatArray, b: FloatArray) -> bytes:
-    """A segment from `a` to `b`, by value and direction (the checked states are a + (b - a) * t)."""
-    return a.tobytes() + b.tobytes()
-
-
-def _recording(motion_valid: MotionValidFn, checked: set[bytes]) -> MotionValidFn:
-    """`motion_valid` that adds each segment it accepts to `checked` (`_segment_key`)."""
-
-    def check(a: FloatArray, b: FloatArray) -> bool:
-        if motion_valid(a, b):
-            checked.add(_segment_key(a, b))
-            return True
-        return False
-
-    return check
