@@ -27,7 +27,7 @@ e2e: setup
 
 setup: system-deps $(STAMP) precompile
 
-# Compiled kernels go to the compile cache (NUMBA_CACHE_DIR, default ~/.cache/robonav/numba),
+# Compiled kernels go to the compile cache (NUMBA_CACHE_DIR, default ~/.cache/robonav/numba, a folder per kernel sources),
 # never into the source tree. Filled here, no service compiles at start-up; seconds when it is full.
 precompile: $(STAMP)
 	$(VENV)/bin/robonav precompile

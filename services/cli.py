@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import importlib
 import importlib.metadata
+import importlib.util
 import os
 import sys
 from pathlib import Path
@@ -49,6 +51,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 NUMBA_CACHE_ENV = "NUMBA_CACHE_DIR"
 """Numba's own variable for where compiled kernels are cached; set, it overrides our default."""
+KERNEL_TAG_PREFIX = "kernels-"
 
 
 def default_numba_cache_dir() -> Path:
@@ -58,13 +61,41 @@ def default_numba_cache_dir() -> Path:
     return Path(base) / "robonav" / "numba"
 
 
+def kernel_sources_tag(root: Path | None = None) -> str:
+    """`kernels-` and a digest of every core module that defines numba kernels (their paths and
+    contents), the folder of the compile cache that holds their compiled code.
+
+    Numba checks a cached kernel against its own source file only: a kernel calling one of
+    another file is loaded with that callee compiled in as it was, after the callee's file changed
+    (numba's documented limitation). After an upgrade, a `git pull` or an edit, the services ran
+    the old collision check inside the new edge loop until the cache was emptied by hand; under
+    this tag they compile afresh whenever any kernel source changed.
+
+    Args:
+        root: The folder of the sources (default: the installed `robonav.pipeline`).
+    """
+    if root is None:
+        spec = importlib.util.find_spec("robonav.pipeline")  # its location, without importing it
+        if spec is None or not spec.submodule_search_locations:
+            raise RuntimeError("robonav.pipeline is not installed")
+        root = Path(next(iter(spec.submodule_search_locations)))
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        source = path.read_bytes()
+        if b"njit" in source:
+            digest.update(path.relative_to(root).as_posix().encode() + b"\0" + source + b"\0")
+    return KERNEL_TAG_PREFIX + digest.hexdigest()[:16]
+
+
 def use_numba_cache_dir() -> Path:
-    """Point numba's on-disk cache at NUMBA_CACHE_DIR, or at `default_numba_cache_dir()`; returns it.
+    """Point numba's on-disk cache at `kernel_sources_tag()` in NUMBA_CACHE_DIR, or in
+    `default_numba_cache_dir()`; returns it (and leaves it in NUMBA_CACHE_DIR for child processes).
 
     Numba reads the variable once, when it is first imported, and by default caches next to
     each source file: inside the installed package, which may be read-only (a system install,
     a container) and, in a checkout, mixes build products into the tree. So every process that
     compiles calls this before anything imports numba: the `robonav` entry point, and the tests.
+    The folders of other kernel sources are left in place (tens of MB each).
 
     Raises:
         RuntimeError: numba was imported before (the setting would not take effect).
@@ -72,6 +103,9 @@ def use_numba_cache_dir() -> Path:
     if "numba" in sys.modules and not os.environ.get(NUMBA_CACHE_ENV):
         raise RuntimeError("numba was imported before its cache directory was set; call use_numba_cache_dir() first")
     path = Path(os.environ.get(NUMBA_CACHE_ENV) or default_numba_cache_dir()).expanduser()
+    tag = kernel_sources_tag()
+    if path.name != tag:  # a child process inherits the tagged folder
+        path = path / tag
     os.environ[NUMBA_CACHE_ENV] = str(path)
     return path
 

@@ -7,7 +7,7 @@ broad phase, shortcutting), perception's synthetic frames (the projection map's 
 and the executor's path guard (lane kinematics). A service started afterwards loads
 its kernels from the cache instead of compiling them, which on a small machine takes minutes.
 The cache is `NUMBA_CACHE_DIR`, by default `$XDG_CACHE_HOME/robonav/numba` or
-`~/.cache/robonav/numba` (see `services/cli.py`). `make setup` and the Docker image build run
+`~/.cache/robonav/numba`, in a folder named after the kernel sources (see `services/cli.py`). `make setup` and the Docker image build run
 this. Prints a JSON summary: the kernel signatures compiled now (0 when the cache was full)
 and loaded from the cache; exit code 2 for a bad config.
 """

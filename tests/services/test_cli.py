@@ -130,3 +130,27 @@ def test_a_command_logs_json_when_asked(tmp_path: Path) -> None:
     lines = [json.loads(line) for line in run.stderr.splitlines() if line.strip()]
     assert lines and all(e["level"] == "ERROR" for e in lines), run.stderr
     assert "unknown key" in lines[0]["message"]
+
+
+def test_the_compile_cache_folder_follows_every_kernel_source(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Numba checks a cached kernel against its own file only: a kernel calling one of another file
+    # would keep the old callee compiled in. Any kernel source changed, the folder changes.
+    (tmp_path / "maps").mkdir()
+    callee, caller, plain = tmp_path / "maps" / "callee.py", tmp_path / "caller.py", tmp_path / "plain.py"
+    callee.write_text("@nb.njit\ndef f(x):\n    return x\n")
+    caller.write_text("@nb.njit\ndef g(x):\n    return f(x)\n")
+    plain.write_text("def h(x):\n    return x\n")
+    tag = cli.kernel_sources_tag(tmp_path)
+    assert tag.startswith(cli.KERNEL_TAG_PREFIX) and tag == cli.kernel_sources_tag(tmp_path)
+    plain.write_text("def h(x):\n    return x + 1\n")
+    assert cli.kernel_sources_tag(tmp_path) == tag  # no kernel in it
+    callee.write_text("@nb.njit\ndef f(x):\n    return x + 1\n")
+    changed = cli.kernel_sources_tag(tmp_path)
+    assert changed != tag
+    callee.rename(tmp_path / "callee.py")
+    assert cli.kernel_sources_tag(tmp_path) not in (tag, changed)  # moved: another module
+    # The installed sources' folder, under NUMBA_CACHE_DIR; a child process inherits it as it is.
+    monkeypatch.setenv(cli.NUMBA_CACHE_ENV, str(tmp_path / "cache"))
+    folder = cli.use_numba_cache_dir()
+    assert folder == tmp_path / "cache" / cli.kernel_sources_tag()
+    assert cli.use_numba_cache_dir() == folder
