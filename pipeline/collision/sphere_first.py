@@ -86,8 +86,8 @@ class SphereFirstChecks:
                        exact: StateValidFn, checked_rad: float = 0.0) -> bool:
         """The edge's broad-phase suspects, each checked at its own clearance tier, in
         `motion_valid` order, are each either asked of FCL (where `exact`) and free, or none
-        exist. The first suspect is tried alone first because a blocked edge's first suspect
-        usually is a collision."""
+        exist. One suspect is found and tried alone first because a blocked edge's suspect usually
+        is a collision; which one is found changes what is asked of FCL first, not the answer."""
         anchors, radius_sq = self.tier_anchors
         edge = self._broad_phase.edge_suspects
         first, tiers, steps = edge(a, b, resolution_rad, first_only=True, anchors=anchors, anchor_radius_sq=radius_sq,

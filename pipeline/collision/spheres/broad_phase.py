@@ -430,9 +430,10 @@ class SphereBroadPhase:
         check at that step (a benchmark's) sees the same states.
 
         Returns:
-            (M,) int64 step indices k of the suspect states in visiting order (at most one when
-            `first_only`), with anchors (M,) int64 the tier each was checked at (else None: all
-            at `tier`), and `steps`.
+            (M,) int64 step indices k of the suspect states in visiting order (with `first_only`
+            at most one: a suspect of the first chunk of `LANES` states that has one, not always
+            the first of the order), with anchors (M,) int64 the tier each was checked at (else
+            None: all at `tier`), and `steps`.
         """
         # Once per tree edge: the step count is left to the compiled code (numpy's reductions on
         # 7 numbers cost microseconds), and the buffers grow only when too short.

@@ -134,6 +134,26 @@ def test_edge_visits_states_in_motion_valid_order(panda: RobotModel) -> None:
     assert not broad.state_suspect(panda.home_position_rad)
 
 
+def test_first_only_finds_a_suspect_of_the_edge(panda: RobotModel,
+                                                worlds: tuple[CollisionWorld, CollisionWorld]) -> None:
+    broad = worlds[0]._broad_phase  # noqa: SLF001
+    rng = np.random.default_rng(23)
+    starts = _random_states(panda, 300, seed=24)
+    blocked = not_first = 0
+    for a in starts:
+        b = np.clip(a + rng.uniform(-0.6, 0.6, size=panda.dof), panda.lower_limits_rad, panda.upper_limits_rad)
+        every, _, steps = broad.edge_suspects(a, b, 0.01)
+        first, _, first_steps = broad.edge_suspects(a, b, 0.01, first_only=True)
+        assert first_steps == steps and first.size == min(every.size, 1)
+        if first.size:
+            # One of the edge's suspects, from its first chunk (16 states) that holds one.
+            order = [steps, *bisection_order(steps), 0]
+            assert first[0] in every and order.index(first[0]) // 16 == order.index(every[0]) // 16
+            blocked += 1
+            not_first += first[0] != every[0]
+    assert blocked > 20 and not_first > 0  # the search stops at a chunk's first flag, not its lane 0
+
+
 def test_attached_spheres(panda: RobotModel) -> None:
     broad = SphereBroadPhase(panda, padding_m=0.0)
     home = panda.home_position_rad
