@@ -43,7 +43,7 @@ from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CONTACT_EPS
 from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld
 from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, suspect_pairs_of_state
 from robonav.pipeline.collision.spheres.piece_gaps import cached_pair_tables
-from robonav.pipeline.collision.spheres.self_pair_tables import no_pair_tables
+from robonav.pipeline.collision.spheres.self_pair_tables import axis_grids, no_pair_tables, pairs_apart_everywhere
 from robonav.pipeline.collision.spheres.separating_planes import (
     SeparatingPlanes,
     cached_separating_planes,
@@ -136,6 +136,10 @@ class SphereBroadPhase:
         self._pair_tables = (cached_pair_tables(robot, self._kin, self._centers_joint, self._radii_self,
                                                 self._link_start, self._self_pairs, CONTACT_EPS_M)
                              if self_pair_tables else no_pair_tables(self._self_pairs.shape[0]))
+        self._axis_grids = axis_grids(self._pair_tables, robot.dof)
+        # The pairs the compiled check visits: not those a table proves apart at every state.
+        self._pair_checked = np.flatnonzero(~pairs_apart_everywhere(
+            self._pair_tables, robot.lower_limits_rad, robot.upper_limits_rad, CONTACT_EPS_M)).astype(np.int64)
         self._planes = (cached_separating_planes(robot, self._kin, self._centers_link, self._radii_self, self._link_start,
                                                  self._self_pairs)
                         if separating_planes else SeparatingPlanes.none(self._self_pairs.shape[0], n_links))
@@ -147,7 +151,8 @@ class SphereBroadPhase:
             sphere_lanes=np.zeros((self._centers_link.shape[0], 3, LANES)), bound_lanes=np.zeros((n_links, 3, LANES)),
             placed=np.zeros(n_links, dtype=np.bool_), near=np.zeros(LANES, dtype=np.bool_), distance=np.zeros(LANES),
             pair_near=np.zeros(LANES, dtype=np.bool_), lane_clearance=np.zeros(LANES),
-            lane_tier=np.zeros(LANES, dtype=np.int64), near_spheres=np.zeros((2, int(np.max(np.diff(starts), initial=0))),
+            lane_tier=np.zeros(LANES, dtype=np.int64), axis_cells=np.zeros((dof + 1, LANES), dtype=np.int64),
+            near_spheres=np.zeros((2, int(np.max(np.diff(starts), initial=0))),
                                                                              dtype=np.int64))
         self._step_buffer = np.zeros((1, 2), dtype=np.int64)
         self._queue, self._no_anchors = np.zeros((1, 2), dtype=np.int64), np.zeros((0, dof))
@@ -340,6 +345,7 @@ class SphereBroadPhase:
     def _new_lane_world(self, grid_clearance: float, fine: VoxelLayer | None) -> LaneWorld:
         parent, joint_type, q_slot, coefficients, base_joint, joint_from_base = self._kin_lane_args
         tables = self._pair_tables
+        axis_low, axis_step, axis_count, axis = self._axis_grids
         layer = self._coarse
         fine = fine or layer
         return LaneWorld(
@@ -347,9 +353,10 @@ class SphereBroadPhase:
             joint_from_base=joint_from_base, centers_joint=self._centers_joint, radii_self=self._radii_self,
             radii_world=self._radii_world, link_start=self._link_start, bound_center_joint=self._bound_center_joint,
             bound_self=self._bound_self, bound_world=self._bound_world, self_pairs=self._self_pairs,
+            pair_checked=self._pair_checked,
             link_joint=self._link_joint, joint_from_link_rotation=self._kin.joint_from_link_rotation,
             joint_from_link_translation=self._kin.joint_from_link_translation_m, pair_offset=tables.offset,
-            pair_slot=tables.slot, pair_low=tables.low, pair_step=tables.step, pair_count=tables.count,
+            pair_axis=axis, axis_low=axis_low, axis_step=axis_step, axis_count=axis_count, pair_count=tables.count,
             pair_gap=tables.gap_m, **{f"sep_{name}": getattr(self._planes, field) for name, field in _PLANE_FIELDS},
             sep_link_growth=self._link_growth,
             obj_kind=self._obj_kind, obj_rotation=self._obj_rotation,

@@ -52,9 +52,9 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "parent", "joint_type", "q_slot", "coefficients", "base_joint", "joint_from_base",
     # spheres, in their joints' frames
     "centers_joint", "radii_self", "radii_world", "link_start", "bound_center_joint", "bound_self", "bound_world",
-    "self_pairs", "link_joint", "joint_from_link_rotation", "joint_from_link_translation",
+    "self_pairs", "pair_checked", "link_joint", "joint_from_link_rotation", "joint_from_link_translation",
     # gap bounds of self pairs few joints apart (`self_pair_tables`)
-    "pair_offset", "pair_slot", "pair_low", "pair_step", "pair_count", "pair_gap",
+    "pair_offset", "pair_axis", "axis_low", "axis_step", "axis_count", "pair_count", "pair_gap",
     # planes that separate self pairs whose spheres overlap (`separating_planes`)
     "sep_pair_whole", "sep_pair_range", "sep_sub_piece", "sep_sub_start", "sep_side", "sep_plane", "sep_piece_link",
     "sep_piece_center", "sep_piece_radius", "sep_vertex_start", "sep_vertices", "sep_link_whole", "sep_link_growth",
@@ -67,7 +67,7 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "att_center_joint", "att_radius", "att_radius_world", "att_joint", "att_skip",
     # scratch: lane inputs and outputs, frames, placed spheres
     "cos_lanes", "sin_lanes", "q_lanes", "lane_clearance", "lane_tier", "flags", "frames", "sphere_lanes", "bound_lanes", "placed", "near",
-    "distance", "att_lanes", "pair_near", "near_spheres",
+    "distance", "att_lanes", "pair_near", "axis_cells", "near_spheres",
 )
 """What the lane kernels read, as one object: a call from Python unboxes one reference (~0.6 us)
 instead of some 45 arrays (~3 us, more than a 16-state chunk of an edge costs)."""
@@ -179,34 +179,45 @@ def points_within(n: int, points_a: FloatArray, i: int, points_b: FloatArray, j:
 
 
 @nb.njit(cache=True)
-def pair_clear(n: int, p: int, q_lanes: FloatArray, offset: IntArray, slot: IntArray, low: FloatArray, step: FloatArray,
-               count: IntArray, gap: FloatArray) -> bool:  # pragma: no cover
-    """Whether self pair p's table proves it apart in every lane: its spheres (`self_pair_tables`)
-    or its convex pieces, and so its meshes (`piece_gaps`)."""
-    if offset[p] < 0:
-        return False
-    for w in range(n):
-        if not lane_pair_clear(w, p, q_lanes, offset, slot, low, step, count, gap):
-            return False
-    return True
+def table_cells(n: int, q_lanes: FloatArray, low: FloatArray, step: FloatArray, count: IntArray,
+                cells: IntArray) -> None:  # pragma: no cover (compiled)
+    """cells[a, w] = the index of lane w's joint value a on the self-pair tables' grid of that
+    value (`self_pair_tables.axis_grids`), -1 off the grid, for the values a table reads. Row
+    `dof` (the unused axis) stays 0."""
+    for a in range(count.shape[0] - 1):
+        if count[a] == 0:
+            continue
+        lo, st, top = low[a], step[a], count[a]
+        for w in range(n):
+            i = int(math.floor((q_lanes[a, w] - lo) / st + 0.5))
+            cells[a, w] = i if 0 <= i < top else -1
 
 
 @nb.njit(cache=True)
-def lane_pair_clear(w: int, p: int, q_lanes: FloatArray, offset: IntArray, slot: IntArray, low: FloatArray,
-                    step: FloatArray, count: IntArray, gap: FloatArray) -> bool:  # pragma: no cover
+def pair_clear(n: int, p: int, cells: IntArray, offset: IntArray, axis: IntArray, count: IntArray,
+               gap: FloatArray) -> bool:  # pragma: no cover
+    """Whether self pair p's table proves it apart in every lane: its spheres (`self_pair_tables`)
+    or its convex pieces, and so its meshes (`piece_gaps`). `cells` from `table_cells`."""
+    if offset[p] < 0:
+        return False
+    a0, a1, base, inner = axis[p, 0], axis[p, 1], offset[p], count[p, 1]
+    clear = True
+    for w in range(n):
+        i0, i1 = cells[a0, w], cells[a1, w]
+        # Off the grid the bound does not hold; the read stays inside the table either way.
+        clear &= (i0 >= 0) & (i1 >= 0) & (gap[base + max(i0, 0) * inner + max(i1, 0)] > CONTACT_EPS_M + ROUNDING_GUARD_M)
+    return clear
+
+
+@nb.njit(cache=True)
+def lane_pair_clear(w: int, p: int, cells: IntArray, offset: IntArray, axis: IntArray, count: IntArray,
+                    gap: FloatArray) -> bool:  # pragma: no cover
     """`pair_clear` for lane w alone: a lane the table proves is not flagged whatever its chunk's
     other lanes need (the pieces can prove a lane whose spheres touch)."""
     if offset[p] < 0:
         return False
-    flat = 0
-    for d in range(2):
-        if slot[p, d] < 0:
-            continue
-        i = int(math.floor((q_lanes[slot[p, d], w] - low[p, d]) / step[p, d] + 0.5))
-        if i < 0 or i >= count[p, d]:
-            return False  # outside the grid: the bound does not hold
-        flat = flat * count[p, d] + i
-    return gap[offset[p] + flat] > CONTACT_EPS_M + ROUNDING_GUARD_M
+    i0, i1 = cells[axis[p, 0], w], cells[axis[p, 1], w]
+    return i0 >= 0 and i1 >= 0 and gap[offset[p] + i0 * count[p, 1] + i1] > CONTACT_EPS_M + ROUNDING_GUARD_M
 
 
 @nb.njit(cache=True)
@@ -282,8 +293,8 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     fine_slot, fine_box, grid_column = world.fine_slot, world.fine_box, world.grid_column
     att_center_joint, att_radius, att_radius_world = world.att_center_joint, world.att_radius, world.att_radius_world
     att_joint, att_skip = world.att_joint, world.att_skip
-    pair_offset, pair_slot, pair_low, pair_step = world.pair_offset, world.pair_slot, world.pair_low, world.pair_step
-    pair_count, pair_gap, q_lanes = world.pair_count, world.pair_gap, world.q_lanes
+    pair_offset, pair_axis, pair_count, pair_gap = world.pair_offset, world.pair_axis, world.pair_count, world.pair_gap
+    axis_cells = world.axis_cells
     pair_near = world.pair_near
     forward_joints_lanes(lanes, world.cos_lanes, world.sin_lanes, world.q_lanes, world.parent, world.joint_type,
                          world.q_slot, world.coefficients, world.base_joint, world.joint_from_base, frames)
@@ -351,11 +362,15 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     # A row per link of the pair, as long as the largest link: scratch of the world, as three
     # allocations per call cost about 0.15 us of a UR5 chunk's 1 us of fixed work.
     near_a, near_b = world.near_spheres[0], world.near_spheres[1]
-    for p in range(self_pairs.shape[0]):
+    pair_checked = world.pair_checked
+    if pair_checked.shape[0] > 0:
+        table_cells(lanes, world.q_lanes, world.axis_low, world.axis_step, world.axis_count, axis_cells)
+    for i in range(pair_checked.shape[0]):
+        p = pair_checked[i]
         la, lb = self_pairs[p, 0], self_pairs[p, 1]
         if not points_within(lanes, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
             continue
-        if pair_clear(lanes, p, q_lanes, pair_offset, pair_slot, pair_low, pair_step, pair_count, pair_gap):
+        if pair_clear(lanes, p, axis_cells, pair_offset, pair_axis, pair_count, pair_gap):
             continue
         _ensure_placed(lanes, la, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
         _ensure_placed(lanes, lb, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
@@ -390,7 +405,7 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
         for w in range(lanes):
             # A lane flagged already needs no proof; one a plane separates is clear of this pair.
             if pair_near[w] and not flags[w] and not lane_pair_clear(
-                    w, p, q_lanes, pair_offset, pair_slot, pair_low, pair_step, pair_count, pair_gap) and not pair_separated(
+                    w, p, axis_cells, pair_offset, pair_axis, pair_count, pair_gap) and not pair_separated(
                     w, p, frames, link_joint, world.sep_pair_whole, world.sep_pair_range, world.sep_sub_piece,
                     world.sep_sub_start, world.sep_side, world.sep_plane, world.sep_piece_link, world.sep_piece_center,
                     world.sep_piece_radius, world.sep_vertex_start, world.sep_vertices):

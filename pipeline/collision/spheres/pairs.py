@@ -20,6 +20,7 @@ from robonav.pipeline.collision.spheres.lanes import (
     pair_clear,
     place_lanes,
     points_within,
+    table_cells,
 )
 from robonav.pipeline.collision.spheres.separating_planes import GUARD_M, link_outside_box, pair_separated
 from robonav.pipeline.robot.lane_kinematics import forward_joints_lanes, link_pose_from_lane
@@ -88,13 +89,13 @@ def suspect_pairs_of_state(q: FloatArray, world: LaneWorld, object_flags: BoolAr
                         world.fine_slot, world.fine_box, world.grid_column):
                     voxel_flags[li] = True
                     break
+    table_cells(1, q_lanes, world.axis_low, world.axis_step, world.axis_count, world.axis_cells)
     for p in range(self_pairs.shape[0]):
         la, lb = self_pairs[p, 0], self_pairs[p, 1]
         self_flags[p] = False
         if not points_within(1, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
             continue
-        if pair_clear(1, p, q_lanes, world.pair_offset, world.pair_slot, world.pair_low, world.pair_step,
-                      world.pair_count, world.pair_gap):
+        if pair_clear(1, p, world.axis_cells, world.pair_offset, world.pair_axis, world.pair_count, world.pair_gap):
             continue
         for sa in range(link_start[la], link_start[la + 1]):
             for sb in range(link_start[lb], link_start[lb + 1]):

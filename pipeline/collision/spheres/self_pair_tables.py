@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robonav.pipeline.robot.lane_kinematics import REVOLUTE, LinkKinematics
-from robonav.pipeline.types import FloatArray, IntArray
+from robonav.pipeline.types import BoolArray, FloatArray, IntArray
 
 MAX_CHAIN_JOINTS = 3
 """Pairs separated by more joints get no table. Grids cover two joints; a third is swept (a 3-D
@@ -191,6 +191,49 @@ def _axis_rotations(axis: FloatArray, angles: FloatArray) -> FloatArray:
     k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     s, c = np.sin(angles)[:, None, None], np.cos(angles)[:, None, None]
     return np.eye(3)[None] + s * k[None] + (1.0 - c) * (k @ k)[None]
+
+
+def axis_grids(tables: SelfPairTables, dof: int) -> tuple[FloatArray, FloatArray, IntArray, IntArray]:
+    """The tables' grids per joint value, for compiled code: (low, step, count), each (dof + 1,),
+    and axis (P, 2): pair p's grid axis d reads joint value axis[p, d]. Row `dof` is the unused
+    axis (count 1, always index 0); a joint value no table reads has count 0.
+
+    Every table over a joint value shares one grid (it spans that joint's limits), so a state's
+    grid indices are worked out once per state, not once per pair: that rounding, repeated for
+    each of the UR5's 21 tabled pairs, was most of their cost.
+
+    Raises:
+        ValueError: two tables over one joint value have different grids.
+    """
+    low, step, count = np.zeros(dof + 1), np.ones(dof + 1), np.zeros(dof + 1, dtype=np.int64)
+    count[dof] = 1
+    for p, d in zip(*np.nonzero(tables.slot >= 0), strict=True):
+        s = int(tables.slot[p, d])
+        grid = (float(tables.low[p, d]), float(tables.step[p, d]), int(tables.count[p, d]))
+        if count[s] and (low[s], step[s], count[s]) != grid:
+            raise ValueError(f"self-pair tables over joint value {s} differ in their grids")
+        low[s], step[s], count[s] = grid
+    axis = np.where(tables.slot >= 0, tables.slot, dof).astype(np.int64)
+    return low, step, count, axis
+
+
+def pairs_apart_everywhere(tables: SelfPairTables, lower_rad: FloatArray, upper_rad: FloatArray,
+                           contact_eps_m: float) -> BoolArray:
+    """(P,) whether pair p's table proves it apart at every state, also one outside the limits:
+    it clears `contact_eps_m` at every grid point (as the compiled check asks), and each grid axis spans a whole turn of
+    its (revolute) joint, or there is none (a pair no joint of the group moves apart, such as a
+    gripper's fingers and a sensor flange on one wrist).
+
+    Such a pair needs no check at all: on the UR5 with its gripper, ten pairs whose spheres are
+    always near each other, each costing a table look-up per state."""
+    apart = np.zeros(tables.offset.shape[0], dtype=np.bool_)
+    for p, start in enumerate(tables.offset):
+        if start < 0:
+            continue
+        gaps = tables.gap_m[start:start + int(np.prod(tables.count[p]))]
+        whole_turns = all(s < 0 or upper_rad[s] - lower_rad[s] >= 2.0 * math.pi for s in tables.slot[p])
+        apart[p] = whole_turns and bool(np.all(gaps > contact_eps_m + ROUNDING_GUARD_M))
+    return apart
 
 
 def no_pair_tables(n_pairs: int) -> SelfPairTables:

@@ -4,11 +4,18 @@ the states only the latter flags free."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
-from robonav.pipeline.collision.spheres.self_pair_tables import build_self_pair_tables
+from robonav.pipeline.collision.spheres.self_pair_tables import (
+    SelfPairTables,
+    axis_grids,
+    build_self_pair_tables,
+    pairs_apart_everywhere,
+)
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import RobotModel
@@ -98,3 +105,54 @@ def test_with_tables_a_subset_is_flagged_and_the_rest_is_free(panda: RobotModel)
         steps_plain, _, n_plain = plain.edge_suspects(a, b, 0.02)
         assert n_fast == n_plain
         assert set(steps_fast) <= set(steps_plain)
+
+
+def _hand_made_tables() -> SelfPairTables:
+    """Over joint values 0 (a whole turn and more: 2 pi + 1 rad) and 1 (1 rad): pair 0 rigid and
+    apart, pair 1 over value 0 and apart, pair 2 over value 1 and apart, pair 3 over both with one
+    cell in contact, pair 4 without a table."""
+    turn, short = (-math.pi - 0.5, (2 * math.pi + 1) / 3, 4), (0.0, 0.5, 3)
+    rows = [((-1, -1), None, None), ((0, -1), turn, None), ((1, -1), short, None), ((0, 1), turn, short)]
+    offset, slot = np.full(5, -1), np.full((5, 2), -1)
+    low, step, count = np.zeros((5, 2)), np.ones((5, 2)), np.ones((5, 2), dtype=np.int64)
+    gaps = []
+    for p, (slots, first, second) in enumerate(rows):
+        offset[p], slot[p] = sum(len(g) for g in gaps), slots
+        for d, grid in enumerate((first, second)):
+            if grid is not None:
+                low[p, d], step[p, d], count[p, d] = grid
+        gap = np.full(int(np.prod(count[p])), 0.01)
+        gap[-1] = 0.0 if p == 3 else gap[-1]
+        gaps.append(gap)
+    return SelfPairTables(offset, slot, low, step, count, np.concatenate(gaps))
+
+
+def test_apart_everywhere_needs_every_cell_clear_over_whole_turns() -> None:
+    tables = _hand_made_tables()
+    lower, upper = np.array([-math.pi - 0.5, 0.0, 0.0]), np.array([math.pi + 0.5, 1.0, 1.0])
+    # The 1 rad joint's table says nothing of an angle beyond its limits: not apart everywhere.
+    assert pairs_apart_everywhere(tables, lower, upper, 1e-9).tolist() == [True, True, False, False, False]
+    low, step, count, axis = axis_grids(tables, 3)
+    assert count.tolist() == [4, 3, 0, 1] and low[1] == 0.0 and step[1] == 0.5
+    assert axis.tolist() == [[3, 3], [0, 3], [1, 3], [0, 1], [3, 3]]  # 3: the unused axis
+    tables.low[3, 1] = 0.1
+    with pytest.raises(ValueError, match="joint value 1"):
+        axis_grids(tables, 3)
+
+
+def test_pairs_apart_at_every_state_are_not_visited(panda: RobotModel) -> None:
+    # The fingers are fixed: link 7 and each finger keep one pose to each other, well apart.
+    pairs = CollisionWorld(panda).self_collision_pairs
+    broad, every = (SphereBroadPhase(panda, padding_m=0.01, self_pairs=pairs) for _ in range(2))
+    links = panda.collision_link_names
+    skipped = {(links[a], links[b]) for p, (a, b) in enumerate(broad._self_pairs)  # noqa: SLF001
+               if p not in broad._pair_checked}  # noqa: SLF001
+    assert skipped == {("panda_link7", "panda_leftfinger"), ("panda_link7", "panda_rightfinger")}
+    every._pair_checked = np.arange(len(pairs))  # noqa: SLF001
+    every._refresh_args()  # noqa: SLF001
+    qs = _states(panda, 400, seed=5)
+    assert any(every.self_suspect(q) for q in qs)
+    for q in qs:
+        assert broad.state_suspect(q) == every.state_suspect(q)
+    for a, b in zip(qs[:-1:2], qs[1::2]):
+        assert np.array_equal(broad.edge_suspects(a, b, 0.02)[0], every.edge_suspects(a, b, 0.02)[0])
