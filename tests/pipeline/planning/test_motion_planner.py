@@ -72,6 +72,29 @@ def test_sphere_first_and_exact_searches_both_give_valid_paths(setup, share: flo
     np.testing.assert_array_equal(outcome.path[-1], goal)
 
 
+def test_fcl_decides_only_near_anchors_the_spheres_flag(setup, panda: RobotModel) -> None:
+    _, start, goal = setup
+    world = CollisionWorld(panda, padding_m=0.01)
+    world.set_objects([BLOCK])
+    planner = MotionPlanner(panda, world, PlannerConfig(edge_resolution_rad=RESOLUTION_RAD, range_rad=1.0,
+                                                        sphere_first_share=1.0))
+    # A goal beside the block whose spheres touch it while its hulls keep off: FCL must decide there.
+    rng = np.random.default_rng(2)
+    tight = next(q for q in goal + rng.uniform(-0.4, 0.4, size=(4000, panda.dof)) * (1.5, 1, 1, 1, 1, 1, 1)
+                 if not panda.check_joint_limits(q) and world._broad_phase.state_suspect(q)  # noqa: SLF001
+                 and not world.in_collision(q))
+    # And one as close to the block whose spheres clear it.
+    close = next(q for q in tight + rng.uniform(-0.15, 0.15, size=(4000, panda.dof))
+                 if not panda.check_joint_limits(q) and not world._broad_phase.state_suspect(q))  # noqa: SLF001
+    for target, exact_near in ((close, False), (tight, True)):
+        outcome = planner.plan(PlanProblem(start, target, allowed_planning_time_s=5.0, seed=3))
+        assert outcome.status is PlanStatus.SUCCESS and outcome.search == "sphere_first", outcome.detail
+        _assert_valid_path(planner, outcome.path, start)
+        # Where FCL decided what the spheres flag: beside the tight goal, not beside the clear one.
+        assert planner._near_anchor(target) is exact_near  # noqa: SLF001
+        assert not planner._near_anchor(start)  # noqa: SLF001
+
+
 def test_sphere_first_is_skipped_against_an_occupancy_map(setup) -> None:
     _, start, goal = setup
     robot = RobotModel.from_config(RobotConfig(
