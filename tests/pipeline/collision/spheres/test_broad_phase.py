@@ -200,6 +200,11 @@ def test_voxels_conservative_and_world_answers_equal(panda: RobotModel) -> None:
     broad = fast._broad_phase  # noqa: SLF001
     assert all(broad.state_suspect(q) for q, hit in zip(qs, slow_answers) if hit)
     assert all(broad.clearance_pair_bounds_m(q)[0].min() <= slow.clearance_m(q) + 1e-9 for q in qs[:40])
+    # States go through in lanes of 16: the same bounds as one at a time, voxels included.
+    bounds, poses = broad.clearance_pair_bounds_m(qs[:40])
+    assert np.array_equal(bounds, np.concatenate([broad.clearance_pair_bounds_m(q)[0] for q in qs[:40]]))
+    assert np.array_equal(poses, np.concatenate([broad.clearance_pair_bounds_m(q)[1] for q in qs[:40]]))
+    assert np.isfinite(bounds[..., -1]).all()
     fast.clear_octree()
     assert not fast.in_collision(panda.home_position_rad)
     assert not broad.state_suspect(panda.home_position_rad)
@@ -216,6 +221,7 @@ def test_clearance_lower_bound_and_min_clearance(panda: RobotModel,
     exact = np.array([slow.clearance_m(q) for q in qs])
     bounds = np.array([broad.clearance_pair_bounds_m(q)[0].min() for q in qs])
     assert np.all(bounds <= exact + 1e-9)
+    assert np.array_equal(broad.clearance_pair_bounds_m(qs)[0].min(axis=(1, 2)), bounds)  # lanes of 16 states
     assert np.any(exact > 0) and np.median(exact - bounds) < 0.05  # a bound, and a useful one
     queries = {"fast": 0, "slow": 0}
     for name, world in (("fast", fast), ("slow", slow)):
