@@ -57,7 +57,7 @@ from robonav.pipeline.collision.spheres.sphere_model import (
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.types import FloatArray
+from robonav.pipeline.types import FloatArray, IntArray
 
 _PLANE_FIELDS = (("pair_whole", "pair_whole"), ("pair_range", "pair_range"), ("sub_piece", "sub_piece"), ("sub_start", "sub_start"), ("side", "side"),
                  ("plane", "plane_joint"), ("piece_link", "piece_link"), ("piece_center", "piece_center_joint"),
@@ -138,8 +138,9 @@ class SphereBroadPhase:
                              if self_pair_tables else no_pair_tables(self._self_pairs.shape[0]))
         self._axis_grids = axis_grids(self._pair_tables, robot.dof)
         # The pairs the compiled check visits: not those a table proves apart at every state.
-        self._pair_checked = np.flatnonzero(~pairs_apart_everywhere(
-            self._pair_tables, robot.lower_limits_rad, robot.upper_limits_rad, CONTACT_EPS_M)).astype(np.int64)
+        self._pair_groups = pair_groups(self._self_pairs, np.flatnonzero(~pairs_apart_everywhere(
+            self._pair_tables, robot.lower_limits_rad, robot.upper_limits_rad, CONTACT_EPS_M)),
+            self._link_joint, self._bound_center_joint, bound_self)
         self._planes = (cached_separating_planes(robot, self._kin, self._centers_link, self._radii_self, self._link_start,
                                                  self._self_pairs)
                         if separating_planes else SeparatingPlanes.none(self._self_pairs.shape[0], n_links))
@@ -353,7 +354,8 @@ class SphereBroadPhase:
             joint_from_base=joint_from_base, centers_joint=self._centers_joint, radii_self=self._radii_self,
             radii_world=self._radii_world, link_start=self._link_start, bound_center_joint=self._bound_center_joint,
             bound_self=self._bound_self, bound_world=self._bound_world, self_pairs=self._self_pairs,
-            pair_checked=self._pair_checked,
+            pair_checked=self._pair_groups[0], pair_group_end=self._pair_groups[1],
+            pair_group_center=self._pair_groups[2], pair_group_radius=self._pair_groups[3],
             link_joint=self._link_joint, joint_from_link_rotation=self._kin.joint_from_link_rotation,
             joint_from_link_translation=self._kin.joint_from_link_translation_m, pair_offset=tables.offset,
             pair_axis=axis, axis_low=axis_low, axis_step=axis_step, axis_count=axis_count, pair_count=tables.count,
@@ -471,6 +473,36 @@ class SphereBroadPhase:
             return self._step_buffer[:count, 0].copy(), None, steps
         found = self._step_buffer[:count].copy()
         return found[:, 0], found[:, 1], steps
+
+
+def pair_groups(self_pairs: IntArray, checked: IntArray, link_joint: IntArray, bound_center_joint: FloatArray,
+                bound_self: FloatArray) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
+    """The self pairs `checked` (indices into `self_pairs` (P, 2)) in groups that share their
+    first link and the joint frame of their second: (order (C,), group_end (C,), center (C, 3),
+    radius (C,)). Position i of `order` starting a group of several pairs holds the group's end
+    position and a sphere (its center in the second links' joint frame) around their bounding
+    spheres; elsewhere the radius is -1. One test of the first link's bounding sphere against a
+    group's skips all of its pairs: the UR5's base, shoulder and upper arm against the dozen
+    links rigid on its last wrist joint cost a bounding-sphere test each per state otherwise."""
+    checked = np.asarray(checked, dtype=np.int64)
+    keys = [(int(self_pairs[p, 0]), int(link_joint[self_pairs[p, 1]])) for p in checked]
+    order = checked[sorted(range(len(checked)), key=lambda i: keys[i])]
+    group_end = np.zeros(len(order), dtype=np.int64)
+    center, radius = np.zeros((len(order), 3)), np.full(len(order), -1.0)
+    first = 0
+    while first < len(order):
+        key = (int(self_pairs[order[first], 0]), int(link_joint[self_pairs[order[first], 1]]))
+        end = first
+        while end < len(order) and (int(self_pairs[order[end], 0]), int(link_joint[self_pairs[order[end], 1]])) == key:
+            end += 1
+        group_end[first] = end
+        if end - first > 1:
+            links = self_pairs[order[first:end], 1]
+            points = bound_center_joint[links]
+            center[first] = 0.5 * (points.min(axis=0) + points.max(axis=0))
+            radius[first] = float(np.max(np.linalg.norm(points - center[first], axis=1) + bound_self[links]))
+        first = end
+    return order, group_end, center, radius
 
 
 def _kernel_anchors(anchors: FloatArray) -> FloatArray:

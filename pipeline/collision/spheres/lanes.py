@@ -52,7 +52,7 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "parent", "joint_type", "q_slot", "coefficients", "base_joint", "joint_from_base",
     # spheres, in their joints' frames
     "centers_joint", "radii_self", "radii_world", "link_start", "bound_center_joint", "bound_self", "bound_world",
-    "self_pairs", "pair_checked", "link_joint", "joint_from_link_rotation", "joint_from_link_translation",
+    "self_pairs", "pair_checked", "pair_group_end", "pair_group_center", "pair_group_radius", "link_joint", "joint_from_link_rotation", "joint_from_link_translation",
     # gap bounds of self pairs few joints apart (`self_pair_tables`)
     "pair_offset", "pair_axis", "axis_low", "axis_step", "axis_count", "pair_count", "pair_gap",
     # planes that separate self pairs whose spheres overlap (`separating_planes`)
@@ -221,6 +221,25 @@ def lane_pair_clear(w: int, p: int, cells: IntArray, offset: IntArray, axis: Int
 
 
 @nb.njit(cache=True)
+def _group_near(n: int, frames: FloatArray, joint: int, center_joint: FloatArray, g: int, radius: float,
+                bound_lanes: FloatArray, link: int, bound_self: FloatArray) -> bool:  # pragma: no cover (compiled)
+    """Whether link `link`'s bounding sphere is within contact of pair group g's sphere (center
+    center_joint[g] in joint frame `joint`, `radius`) in any of the n lanes."""
+    cx, cy, cz = center_joint[g, 0], center_joint[g, 1], center_joint[g, 2]
+    reach = bound_self[link] + radius + CONTACT_EPS_M
+    near = False
+    for w in range(n):
+        dx = frames[joint, 9, w] + frames[joint, 0, w] * cx + frames[joint, 1, w] * cy + frames[joint, 2, w] * cz \
+            - bound_lanes[link, 0, w]
+        dy = frames[joint, 10, w] + frames[joint, 3, w] * cx + frames[joint, 4, w] * cy + frames[joint, 5, w] * cz \
+            - bound_lanes[link, 1, w]
+        dz = frames[joint, 11, w] + frames[joint, 6, w] * cx + frames[joint, 7, w] * cy + frames[joint, 8, w] * cz \
+            - bound_lanes[link, 2, w]
+        near |= dx * dx + dy * dy + dz * dz <= reach * reach
+    return near
+
+
+@nb.njit(cache=True)
 def _any_set(n: int, flags: BoolArray) -> bool:  # pragma: no cover (compiled)
     found = False
     for w in range(n):
@@ -362,58 +381,67 @@ def lanes_suspect(lanes: int, world: LaneWorld, stop_at_first_lane: bool) -> Non
     # A row per link of the pair, as long as the largest link: scratch of the world, as three
     # allocations per call cost about 0.15 us of a UR5 chunk's 1 us of fixed work.
     near_a, near_b = world.near_spheres[0], world.near_spheres[1]
-    pair_checked = world.pair_checked
+    pair_checked, group_end, group_radius = world.pair_checked, world.pair_group_end, world.pair_group_radius
     if pair_checked.shape[0] > 0:
         table_cells(lanes, world.q_lanes, world.axis_low, world.axis_step, world.axis_count, axis_cells)
-    for i in range(pair_checked.shape[0]):
-        p = pair_checked[i]
-        la, lb = self_pairs[p, 0], self_pairs[p, 1]
-        if not points_within(lanes, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
+    # Pairs in groups sharing their first link and the joint of their second (`pair_groups`):
+    # one bounding-sphere test may skip a whole group.
+    at = 0
+    while at < pair_checked.shape[0]:
+        first, at = at, group_end[at]
+        if group_radius[first] >= 0.0 and not _group_near(
+                lanes, frames, link_joint[self_pairs[pair_checked[first], 1]], world.pair_group_center, first,
+                group_radius[first], bound_lanes, self_pairs[pair_checked[first], 0], bound_self):
             continue
-        if pair_clear(lanes, p, axis_cells, pair_offset, pair_axis, pair_count, pair_gap):
-            continue
-        _ensure_placed(lanes, la, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
-        _ensure_placed(lanes, lb, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
-        # Each link's spheres against the other link's bounding sphere first, then only the near
-        # ones against each other: most spheres of a pair whose bounds overlap are far from the
-        # other link, on both sides (a 12-sphere upper arm beside a 4-sphere wrist).
-        n_near_a = 0
-        for sa in range(link_start[la], link_start[la + 1]):
-            if points_within(lanes, sphere_lanes, sa, bound_lanes, lb, radii_self[sa] + bound_self[lb], near):
-                near_a[n_near_a] = sa
-                n_near_a += 1
-        if n_near_a == 0:
-            continue
-        n_near_b = 0
-        for sb in range(link_start[lb], link_start[lb + 1]):
-            if points_within(lanes, sphere_lanes, sb, bound_lanes, la, radii_self[sb] + bound_self[la], near):
-                near_b[n_near_b] = sb
-                n_near_b += 1
-        touching = False
-        for w in range(lanes):
-            pair_near[w] = False
-        for i in range(n_near_a):
-            sa = near_a[i]
-            for j in range(n_near_b):
-                sb = near_b[j]
-                if points_within(lanes, sphere_lanes, sa, sphere_lanes, sb, radii_self[sa] + radii_self[sb], near):
-                    touching = True
-                    for w in range(lanes):
-                        pair_near[w] |= near[w]
-        if not touching:
-            continue
-        for w in range(lanes):
-            # A lane flagged already needs no proof; one a plane separates is clear of this pair.
-            if pair_near[w] and not flags[w] and not lane_pair_clear(
-                    w, p, axis_cells, pair_offset, pair_axis, pair_count, pair_gap) and not pair_separated(
-                    w, p, frames, link_joint, world.sep_pair_whole, world.sep_pair_range, world.sep_sub_piece,
-                    world.sep_sub_start, world.sep_side, world.sep_plane, world.sep_piece_link, world.sep_piece_center,
-                    world.sep_piece_radius, world.sep_vertex_start, world.sep_vertices):
-                flags[w] = True
-                if stop_at_first_lane:
-                    break
-        if _all_set(lanes, flags) or (stop_at_first_lane and _any_set(lanes, flags)):
-            return
+        for k in range(first, at):
+            p = pair_checked[k]
+            la, lb = self_pairs[p, 0], self_pairs[p, 1]
+            if not points_within(lanes, bound_lanes, la, bound_lanes, lb, bound_self[la] + bound_self[lb], near):
+                continue
+            if pair_clear(lanes, p, axis_cells, pair_offset, pair_axis, pair_count, pair_gap):
+                continue
+            _ensure_placed(lanes, la, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
+            _ensure_placed(lanes, lb, placed, frames, link_joint, centers_joint, link_start, sphere_lanes)
+            # Each link's spheres against the other link's bounding sphere first, then only the near
+            # ones against each other: most spheres of a pair whose bounds overlap are far from the
+            # other link, on both sides (a 12-sphere upper arm beside a 4-sphere wrist).
+            n_near_a = 0
+            for sa in range(link_start[la], link_start[la + 1]):
+                if points_within(lanes, sphere_lanes, sa, bound_lanes, lb, radii_self[sa] + bound_self[lb], near):
+                    near_a[n_near_a] = sa
+                    n_near_a += 1
+            if n_near_a == 0:
+                continue
+            n_near_b = 0
+            for sb in range(link_start[lb], link_start[lb + 1]):
+                if points_within(lanes, sphere_lanes, sb, bound_lanes, la, radii_self[sb] + bound_self[la], near):
+                    near_b[n_near_b] = sb
+                    n_near_b += 1
+            touching = False
+            for w in range(lanes):
+                pair_near[w] = False
+            for i in range(n_near_a):
+                sa = near_a[i]
+                for j in range(n_near_b):
+                    sb = near_b[j]
+                    if points_within(lanes, sphere_lanes, sa, sphere_lanes, sb, radii_self[sa] + radii_self[sb], near):
+                        touching = True
+                        for w in range(lanes):
+                            pair_near[w] |= near[w]
+            if not touching:
+                continue
+            for w in range(lanes):
+                # A lane flagged already needs no proof; one a plane separates is clear of this pair.
+                if pair_near[w] and not flags[w] and not lane_pair_clear(
+                        w, p, axis_cells, pair_offset, pair_axis, pair_count, pair_gap) and not pair_separated(
+                        w, p, frames, link_joint, world.sep_pair_whole, world.sep_pair_range, world.sep_sub_piece,
+                        world.sep_sub_start, world.sep_side, world.sep_plane, world.sep_piece_link, world.sep_piece_center,
+                        world.sep_piece_radius, world.sep_vertex_start, world.sep_vertices):
+                    flags[w] = True
+                    if stop_at_first_lane:
+                        break
+            if _all_set(lanes, flags) or (stop_at_first_lane and _any_set(lanes, flags)):
+                return
     # Attached spheres: against the world (padded) and the robot links they may not touch.
     n_attached = att_radius.shape[0]
     if n_attached == 0:
