@@ -208,8 +208,8 @@ class MotionPlanner:
         Sphere-first: a state whose covering spheres touch nothing is free (they contain the
         padded hulls, so it is FCL-free); one they flag counts as blocked without asking FCL,
         except within `sphere_first_exact_radius_rad` of the start or a goal (against objects,
-        one whose own spheres touch something): queries often begin and end in tight spots. That makes a tree edge one compiled call instead of
-        tens of FCL calls, at the price of the narrow passages the spheres over-cover (about
+        one whose own spheres touch something): queries often begin and end in tight spots.
+        That makes a tree edge one compiled call instead of tens of FCL calls, at the price of the narrow passages the spheres over-cover (about
         1.5 cm per link). Every path found this way is FCL-free; it is re-validated regardless.
         When that search fails, the rest of the budget goes to the exact search.
         """

@@ -153,8 +153,7 @@ class SphereBroadPhase:
             placed=np.zeros(n_links, dtype=np.bool_), near=np.zeros(LANES, dtype=np.bool_), distance=np.zeros(LANES),
             pair_near=np.zeros(LANES, dtype=np.bool_), lane_clearance=np.zeros(LANES),
             lane_tier=np.zeros(LANES, dtype=np.int64), axis_cells=np.zeros((dof + 1, LANES), dtype=np.int64),
-            near_spheres=np.zeros((2, int(np.max(np.diff(starts), initial=0))),
-                                                                             dtype=np.int64))
+            near_spheres=np.zeros((2, int(np.max(np.diff(starts), initial=0))), dtype=np.int64))
         self._step_buffer = np.zeros((1, 2), dtype=np.int64)
         self._queue, self._no_anchors = np.zeros((1, 2), dtype=np.int64), np.zeros((0, dof))
         self.clear_objects()

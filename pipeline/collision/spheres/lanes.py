@@ -52,7 +52,9 @@ LANE_WORLD_FIELDS: tuple[str, ...] = (
     "parent", "joint_type", "q_slot", "coefficients", "base_joint", "joint_from_base",
     # spheres, in their joints' frames
     "centers_joint", "radii_self", "radii_world", "link_start", "bound_center_joint", "bound_self", "bound_world",
-    "self_pairs", "pair_checked", "pair_group_end", "pair_group_center", "pair_group_radius", "link_joint", "joint_from_link_rotation", "joint_from_link_translation",
+    "self_pairs", "link_joint", "joint_from_link_rotation", "joint_from_link_translation",
+    # the self pairs checked, in groups one bounding-sphere test may skip (`broad_phase.pair_groups`)
+    "pair_checked", "pair_group_end", "pair_group_center", "pair_group_radius",
     # gap bounds of self pairs few joints apart (`self_pair_tables`)
     "pair_offset", "pair_axis", "axis_low", "axis_step", "axis_count", "pair_count", "pair_gap",
     # planes that separate self pairs whose spheres overlap (`separating_planes`)
@@ -205,7 +207,8 @@ def pair_clear(n: int, p: int, cells: IntArray, offset: IntArray, axis: IntArray
     for w in range(n):
         i0, i1 = cells[a0, w], cells[a1, w]
         # Off the grid the bound does not hold; the read stays inside the table either way.
-        clear &= (i0 >= 0) & (i1 >= 0) & (gap[base + max(i0, 0) * inner + max(i1, 0)] > CONTACT_EPS_M + ROUNDING_GUARD_M)
+        inside = (i0 >= 0) & (i1 >= 0)
+        clear &= inside & (gap[base + max(i0, 0) * inner + max(i1, 0)] > CONTACT_EPS_M + ROUNDING_GUARD_M)
     return clear
 
 

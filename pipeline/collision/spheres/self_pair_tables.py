@@ -220,11 +220,11 @@ def axis_grids(tables: SelfPairTables, dof: int) -> tuple[FloatArray, FloatArray
 def pairs_apart_everywhere(tables: SelfPairTables, lower_rad: FloatArray, upper_rad: FloatArray,
                            contact_eps_m: float) -> BoolArray:
     """(P,) whether pair p's table proves it apart at every state, also one outside the limits:
-    it clears `contact_eps_m` at every grid point (as the compiled check asks), and each grid axis spans a whole turn of
-    its (revolute) joint, or there is none (a pair no joint of the group moves apart, such as a
-    gripper's fingers and a sensor flange on one wrist).
+    it clears `contact_eps_m` at every grid point (as the compiled check asks), and each grid
+    axis spans a whole turn of its (revolute) joint, or there is none (a pair no joint of the
+    group moves apart, such as a gripper's fingers and a sensor flange on one wrist).
 
-    Such a pair needs no check at all: on the UR5 with its gripper, ten pairs whose spheres are
+    Such a pair needs no check at all: on the UR5 with its gripper, eight pairs whose spheres are
     always near each other, each costing a table look-up per state."""
     apart = np.zeros(tables.offset.shape[0], dtype=np.bool_)
     for p, start in enumerate(tables.offset):
