@@ -43,7 +43,7 @@ from robonav.pipeline.collision.spheres.kernels import BOX, CAPSULE, CONTACT_EPS
 from robonav.pipeline.collision.spheres.lanes import LANES, LaneWorld
 from robonav.pipeline.collision.spheres.pairs import clearance_pair_bounds, suspect_pairs_of_state
 from robonav.pipeline.collision.spheres.piece_gaps import cached_pair_tables
-from robonav.pipeline.collision.spheres.self_pair_tables import axis_grids, no_pair_tables, pairs_apart_everywhere
+from robonav.pipeline.collision.spheres.self_pair_tables import axis_grids, no_pair_tables
 from robonav.pipeline.collision.spheres.separating_planes import (
     SeparatingPlanes,
     cached_separating_planes,
@@ -54,10 +54,11 @@ from robonav.pipeline.collision.spheres.sphere_model import (
     robot_sphere_model,
     world_radii,
 )
+from robonav.pipeline.collision.spheres.visited_pairs import pair_groups, pairs_apart_everywhere
 from robonav.pipeline.robot.lane_kinematics import LinkKinematics
 from robonav.pipeline.robot.model import RobotModel
 from robonav.pipeline.scene import SceneObject
-from robonav.pipeline.types import FloatArray, IntArray
+from robonav.pipeline.types import FloatArray
 
 _PLANE_FIELDS = (("pair_whole", "pair_whole"), ("pair_range", "pair_range"), ("sub_piece", "sub_piece"), ("sub_start", "sub_start"), ("side", "side"),
                  ("plane", "plane_joint"), ("piece_link", "piece_link"), ("piece_center", "piece_center_joint"),
@@ -472,36 +473,6 @@ class SphereBroadPhase:
             return self._step_buffer[:count, 0].copy(), None, steps
         found = self._step_buffer[:count].copy()
         return found[:, 0], found[:, 1], steps
-
-
-def pair_groups(self_pairs: IntArray, checked: IntArray, link_joint: IntArray, bound_center_joint: FloatArray,
-                bound_self: FloatArray) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
-    """The self pairs `checked` (indices into `self_pairs` (P, 2)) in groups that share their
-    first link and the joint frame of their second: (order (C,), group_end (C,), center (C, 3),
-    radius (C,)). Position i of `order` starting a group of several pairs holds the group's end
-    position and a sphere (its center in the second links' joint frame) around their bounding
-    spheres; elsewhere the radius is -1. One test of the first link's bounding sphere against a
-    group's skips all of its pairs: the UR5's base, shoulder and upper arm against the dozen
-    links rigid on its last wrist joint cost a bounding-sphere test each per state otherwise."""
-    checked = np.asarray(checked, dtype=np.int64)
-    keys = [(int(self_pairs[p, 0]), int(link_joint[self_pairs[p, 1]])) for p in checked]
-    order = checked[sorted(range(len(checked)), key=lambda i: keys[i])]
-    group_end = np.zeros(len(order), dtype=np.int64)
-    center, radius = np.zeros((len(order), 3)), np.full(len(order), -1.0)
-    first = 0
-    while first < len(order):
-        key = (int(self_pairs[order[first], 0]), int(link_joint[self_pairs[order[first], 1]]))
-        end = first
-        while end < len(order) and (int(self_pairs[order[end], 0]), int(link_joint[self_pairs[order[end], 1]])) == key:
-            end += 1
-        group_end[first] = end
-        if end - first > 1:
-            links = self_pairs[order[first:end], 1]
-            points = bound_center_joint[links]
-            center[first] = 0.5 * (points.min(axis=0) + points.max(axis=0))
-            radius[first] = float(np.max(np.linalg.norm(points - center[first], axis=1) + bound_self[links]))
-        first = end
-    return order, group_end, center, radius
 
 
 def _kernel_anchors(anchors: FloatArray) -> FloatArray:

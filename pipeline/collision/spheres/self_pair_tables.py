@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robonav.pipeline.robot.lane_kinematics import REVOLUTE, LinkKinematics
-from robonav.pipeline.types import BoolArray, FloatArray, IntArray
+from robonav.pipeline.types import FloatArray, IntArray
 
 MAX_CHAIN_JOINTS = 3
 """Pairs separated by more joints get no table. Grids cover two joints; a third is swept (a 3-D
@@ -215,25 +215,6 @@ def axis_grids(tables: SelfPairTables, dof: int) -> tuple[FloatArray, FloatArray
         low[s], step[s], count[s] = grid
     axis = np.where(tables.slot >= 0, tables.slot, dof).astype(np.int64)
     return low, step, count, axis
-
-
-def pairs_apart_everywhere(tables: SelfPairTables, lower_rad: FloatArray, upper_rad: FloatArray,
-                           contact_eps_m: float) -> BoolArray:
-    """(P,) whether pair p's table proves it apart at every state, also one outside the limits:
-    it clears `contact_eps_m` at every grid point (as the compiled check asks), and each grid
-    axis spans a whole turn of its (revolute) joint, or there is none (a pair no joint of the
-    group moves apart, such as a gripper's fingers and a sensor flange on one wrist).
-
-    Such a pair needs no check at all: on the UR5 with its gripper, eight pairs whose spheres are
-    always near each other, each costing a table look-up per state."""
-    apart = np.zeros(tables.offset.shape[0], dtype=np.bool_)
-    for p, start in enumerate(tables.offset):
-        if start < 0:
-            continue
-        gaps = tables.gap_m[start:start + int(np.prod(tables.count[p]))]
-        whole_turns = all(s < 0 or upper_rad[s] - lower_rad[s] >= 2.0 * math.pi for s in tables.slot[p])
-        apart[p] = whole_turns and bool(np.all(gaps > contact_eps_m + ROUNDING_GUARD_M))
-    return apart
 
 
 def no_pair_tables(n_pairs: int) -> SelfPairTables:

@@ -9,13 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase, pair_groups
-from robonav.pipeline.collision.spheres.self_pair_tables import (
-    SelfPairTables,
-    axis_grids,
-    build_self_pair_tables,
-    pairs_apart_everywhere,
-)
+from robonav.pipeline.collision.spheres.broad_phase import SphereBroadPhase
+from robonav.pipeline.collision.spheres.self_pair_tables import SelfPairTables, axis_grids, build_self_pair_tables
 from robonav.pipeline.collision.world import CollisionWorld
 from robonav.pipeline.robot.config import RobotConfig
 from robonav.pipeline.robot.model import RobotModel
@@ -127,51 +122,11 @@ def _hand_made_tables() -> SelfPairTables:
     return SelfPairTables(offset, slot, low, step, count, np.concatenate(gaps))
 
 
-def test_apart_everywhere_needs_every_cell_clear_over_whole_turns() -> None:
+def test_tables_over_one_joint_share_its_grid() -> None:
     tables = _hand_made_tables()
-    lower, upper = np.array([-math.pi - 0.5, 0.0, 0.0]), np.array([math.pi + 0.5, 1.0, 1.0])
-    # The 1 rad joint's table says nothing of an angle beyond its limits: not apart everywhere.
-    assert pairs_apart_everywhere(tables, lower, upper, 1e-9).tolist() == [True, True, False, False, False]
     low, step, count, axis = axis_grids(tables, 3)
     assert count.tolist() == [4, 3, 0, 1] and low[1] == 0.0 and step[1] == 0.5
     assert axis.tolist() == [[3, 3], [0, 3], [1, 3], [0, 1], [3, 3]]  # 3: the unused axis
     tables.low[3, 1] = 0.1
     with pytest.raises(ValueError, match="joint value 1"):
         axis_grids(tables, 3)
-
-
-def test_pair_groups_share_the_first_link_and_the_joint_of_the_second() -> None:
-    pairs = np.array([(0, 2), (1, 2), (0, 4), (0, 3), (0, 5)])
-    link_joint = np.array([0, 1, 2, 2, 3, 3])
-    centers = np.array([[0.0, 0, 0], [0, 0, 0], [0.1, 0, 0], [-0.1, 0, 0], [0, 0, 0], [0, 0.3, 0]])
-    order, end, center, radius = pair_groups(pairs, np.array([0, 1, 2, 3, 4]), link_joint, centers,
-                                             np.array([0.1, 0.1, 0.05, 0.02, 0.1, 0.1]))
-    # (0, 2) and (0, 3): link 0 against links 2 and 3, both on joint 2; then link 0 against
-    # joint 3's links 4 and 5; link 1's pair alone.
-    assert [tuple(pairs[p]) for p in order] == [(0, 2), (0, 3), (0, 4), (0, 5), (1, 2)]
-    assert end[[0, 2, 4]].tolist() == [2, 4, 5] and radius[4] == -1.0
-    np.testing.assert_allclose(center[0], [0.0, 0.0, 0.0])
-    assert radius[0] == pytest.approx(0.15)  # link 2's sphere: 0.1 from the middle, radius 0.05
-    np.testing.assert_allclose(center[2], [0.0, 0.15, 0.0])
-    assert radius[2] == pytest.approx(0.25)
-
-
-def test_pairs_apart_at_every_state_are_not_visited(panda: RobotModel) -> None:
-    # The fingers are fixed: link 7 and each finger keep one pose to each other, well apart.
-    pairs = CollisionWorld(panda).self_collision_pairs
-    broad, every = (SphereBroadPhase(panda, padding_m=0.01, self_pairs=pairs) for _ in range(2))
-    links = panda.collision_link_names
-    skipped = {(links[a], links[b]) for p, (a, b) in enumerate(broad._self_pairs)  # noqa: SLF001
-               if p not in broad._pair_groups[0]}  # noqa: SLF001
-    assert skipped == {("panda_link7", "panda_leftfinger"), ("panda_link7", "panda_rightfinger")}
-    # Every pair, each on its own (no group's bounding sphere skips it).
-    every._pair_groups = (np.arange(len(pairs)), np.arange(1, len(pairs) + 1), np.zeros((len(pairs), 3)),  # noqa: SLF001
-                          np.full(len(pairs), -1.0))
-    every._refresh_args()  # noqa: SLF001
-    assert (broad._pair_groups[3] >= 0).any()  # noqa: SLF001 (groups: link 7, the hand and the fingers on one joint)
-    qs = _states(panda, 400, seed=5)
-    assert any(every.self_suspect(q) for q in qs)
-    for q in qs:
-        assert broad.state_suspect(q) == every.state_suspect(q)
-    for a, b in zip(qs[:-1:2], qs[1::2]):
-        assert np.array_equal(broad.edge_suspects(a, b, 0.02)[0], every.edge_suspects(a, b, 0.02)[0])
