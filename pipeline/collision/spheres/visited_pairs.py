@@ -9,6 +9,7 @@ pair visited on its own.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -45,17 +46,15 @@ def pair_groups(self_pairs: IntArray, checked: IntArray, link_joint: IntArray, b
     spheres; elsewhere the radius is -1. One test of the first link's bounding sphere against a
     group's skips all of its pairs: the UR5's base, shoulder and upper arm against the dozen
     links rigid on its last wrist joint cost a bounding-sphere test each per state otherwise."""
-    checked = np.asarray(checked, dtype=np.int64)
-    keys = [(int(self_pairs[p, 0]), int(link_joint[self_pairs[p, 1]])) for p in checked]
-    order = checked[sorted(range(len(checked)), key=lambda i: keys[i])]
+    def key(p: int) -> tuple[int, int]:
+        return int(self_pairs[p, 0]), int(link_joint[self_pairs[p, 1]])
+
+    order = np.array(sorted(np.asarray(checked, dtype=np.int64), key=key), dtype=np.int64)
     group_end = np.zeros(len(order), dtype=np.int64)
     center, radius = np.zeros((len(order), 3)), np.full(len(order), -1.0)
     first = 0
-    while first < len(order):
-        key = (int(self_pairs[order[first], 0]), int(link_joint[self_pairs[order[first], 1]]))
-        end = first
-        while end < len(order) and (int(self_pairs[order[end], 0]), int(link_joint[self_pairs[order[end], 1]])) == key:
-            end += 1
+    for _, members in itertools.groupby(order, key=key):
+        end = first + len(list(members))
         group_end[first] = end
         if end - first > 1:
             links = self_pairs[order[first:end], 1]
